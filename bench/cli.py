@@ -1,0 +1,152 @@
+"""The ``c3bench`` command line (also ``python -m bench``).
+
+Subcommands:
+
+* ``problems generate --suite quick --out DIR``: write a suite's instances.
+* ``problems list DIR``: a table of the instances below DIR by family.
+* ``solvers``: the registry: every backend, its availability, version and families.
+* ``run``, ``report``, ``compare``: the benchmark (``bench/commands.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import pandas as pd
+
+
+def _capture_for(name: str):
+    """The ADMM-iterate source behind the QP and projection families."""
+    if name == "provisional":
+        return None
+    from solvers.c3 import C3Options, controller_capture
+
+    variant = "c3plus"
+    return controller_capture(C3Options(variant=variant))
+
+
+def cmd_problems_generate(args: argparse.Namespace) -> int:
+    from problems.config import load_config
+    from problems.suites import SUITES, generate_suite
+
+    if args.suite not in SUITES:
+        print(f"error: unknown suite {args.suite!r}; known: {', '.join(SUITES)}",
+              file=sys.stderr)
+        return 2
+    config = load_config(args.config)
+    paths = generate_suite(args.suite, args.out, config=config,
+                           capture=_capture_for(args.capture), progress=not args.quiet)
+    print(f"wrote {len(paths)} instances to {args.out}")
+    print(instance_table(Path(args.out)).to_string(index=False))
+    return 0
+
+
+def instance_table(directory: Path) -> pd.DataFrame:
+    """Per family: count, variables, equality and inequality rows, bounded variables, pairs.
+
+    Sizes that vary within a family are shown as ``min-max``.
+    """
+    from problems.instance import load_instances
+
+    rows = [p.summary() for p in load_instances(directory)]
+    if not rows:
+        return pd.DataFrame(columns=["family", "count", "variables", "equality_rows",
+                                     "inequality_rows", "bounded_variables",
+                                     "complementarity_pairs"])
+    frame = pd.DataFrame(rows)
+    columns = ["variables", "equality_rows", "inequality_rows", "bounded_variables",
+               "complementarity_pairs"]
+
+    def span(values: pd.Series) -> str:
+        low, high = int(values.min()), int(values.max())
+        return str(low) if low == high else f"{low}-{high}"
+
+    table = frame.groupby("family", sort=True).agg(
+        count=("name", "size"), **{c: (c, span) for c in columns})
+    return table.reset_index()
+
+
+def cmd_problems_list(args: argparse.Namespace) -> int:
+    directory = Path(args.directory)
+    if not directory.is_dir():
+        print(f"error: {directory} is not a directory", file=sys.stderr)
+        return 2
+    table = instance_table(directory)
+    if table.empty:
+        print(f"no instances under {directory}")
+        return 1
+    print(table.to_string(index=False))
+    return 0
+
+
+def cmd_solvers(args: argparse.Namespace) -> int:
+    from solvers import registry
+
+    rows = [{
+        "solver": info.name,
+        "available": "yes" if info.available else "no",
+        "version": info.version,
+        "families": ",".join(info.families),
+        "precisions": ",".join(info.precisions),
+        "note": info.reason or info.description,
+    } for info in registry.available()]
+    frame = pd.DataFrame(rows)
+    with pd.option_context("display.max_colwidth", 70, "display.width", 200):
+        print(frame.to_string(index=False))
+    for module, error in registry.module_errors().items():
+        print(f"warning: backend module {module} failed to load: {error}", file=sys.stderr)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="c3bench",
+        description="Benchmark solvers on the subproblems of contact-implicit MPC (C3 / C3+).")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    problems = sub.add_parser("problems", help="generate and list subproblem instances")
+    problems_sub = problems.add_subparsers(dest="problems_command", required=True)
+    generate = problems_sub.add_parser("generate", help="write a suite's instances")
+    generate.add_argument("--suite", default="quick", help="quick, default or full")
+    generate.add_argument("--out", required=True, help="output directory")
+    generate.add_argument("--config", default=None, help="task constants (TOML)")
+    generate.add_argument("--capture", choices=("controller", "provisional"),
+                          default="provisional",
+                          help="source of the ADMM iterates behind the QP families")
+    generate.add_argument("--quiet", action="store_true", help="no progress bar")
+    generate.set_defaults(handler=cmd_problems_generate)
+    listing = problems_sub.add_parser("list", help="table of instances by family")
+    listing.add_argument("directory")
+    listing.set_defaults(handler=cmd_problems_list)
+
+    solvers = sub.add_parser("solvers", help="list solver backends")
+    solvers.set_defaults(handler=cmd_solvers)
+
+    try:
+        from bench.commands import register_commands
+    except ModuleNotFoundError as error:
+        if error.name != "bench.commands":
+            raise
+    else:
+        register_commands(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.handler(args))
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, FileNotFoundError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

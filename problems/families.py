@@ -1,0 +1,290 @@
+"""Builders of the five subproblem families (SPEC.md section 3).
+
+All return a :class:`problems.instance.Problem` in the form
+``min 1/2 z^T P z + q^T z + offset s.t. A z = b, G z <= h, lb <= z <= ub``, complementarity
+pairs ``0 <= z_i perp z_j >= 0``.
+
+* ``c3plus_qp``: C3+'s QP step over ``z_k = (x_k, lam_k, u_k, eta_k)``:
+  ``min J(x, u) + sum_k ||z_k - (delta_k - w_k)||^2_{G_k}`` s.t. ``x_0 = x0``, dynamics,
+  ``eta_k = E x_k + F lam_k + H u_k + c``.
+* ``c3_qp``: C3's QP step over ``z_k = (x_k, lam_k, u_k)``, dynamics only.
+* ``projection``: one step's projection ``min ||delta - v||^2_U`` onto the complementarity set;
+  variant ``c3`` couples ``eta = E x + F lam + H u + c`` (``U`` is zero on ``eta``), variant
+  ``c3plus`` projects each pair ``(lam_i, eta_i)`` on its own.
+* ``mpcc``: ``min J(x, u)`` s.t. dynamics, ``eta_k = E x_k + F lam_k + H u_k + c``,
+  ``0 <= lam_k perp eta_k >= 0`` and ``|u| <= force_limit``.
+* ``lcp``: ``min 1/2 lam^T F lam + q^T lam`` s.t. ``lam >= 0`` with ``q = E x + H u + c``
+  (its KKT conditions are the LCP because ``F`` is symmetric PSD for Anitescu).
+
+Weights: ``G_k = diag(rho_x I, rho_lam I, rho_u I, rho_eta I)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from problems.instance import Problem
+from problems.lcs import LCS
+from problems.mpc import MPC, HorizonLayout
+
+RHO_KEYS: tuple[str, ...] = ("x", "lam", "u", "eta")
+
+
+def check_rho(rho: Mapping[str, float], blocks: tuple[str, ...]) -> dict[str, float]:
+    """Validate consensus weights: finite and > 0 for every block; ``ValueError`` names it."""
+    out: dict[str, float] = {}
+    for block in blocks:
+        if block not in rho:
+            raise ValueError(f"rho is missing the weight for block {block!r}")
+        value = float(rho[block])
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"rho[{block!r}] must be finite and > 0, got {rho[block]!r}")
+        out[block] = value
+    return out
+
+
+def weight_vector(layout: HorizonLayout, rho: Mapping[str, float]) -> np.ndarray:
+    """Diagonal of ``G_k`` for one step of the layout."""
+    return np.concatenate([np.full(size, rho[name])
+                           for name, size in layout.block_sizes().items()])
+
+
+def _cost_terms(layout: HorizonLayout, mpc: MPC) -> tuple[np.ndarray, np.ndarray, float]:
+    """Hessian, gradient and constant of ``J`` in ``z`` (``J = 1/2 z P z + q z + r``)."""
+    n = layout.size
+    P = np.zeros((n, n))
+    q = np.zeros(n)
+    offset = 0.0
+    for k in range(layout.horizon + 1):
+        weight = mpc.Q if k < layout.horizon else mpc.Q_f
+        sx = layout.index(k, "x")
+        P[sx, sx] += 2 * weight
+        q[sx] += -2 * weight @ mpc.x_target
+        offset += float(mpc.x_target @ weight @ mpc.x_target)
+        if k < layout.horizon:
+            su = layout.index(k, "u")
+            P[su, su] += 2 * mpc.R
+    return P, q, offset
+
+
+def _dynamics_rows(layout: HorizonLayout, lcs: LCS, x0: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``x_0 = x0``, ``x_{k+1} - A x_k - B u_k - D lam_k = d`` and, with eta,
+    ``eta_k - E x_k - F lam_k - H u_k = c``."""
+    T, nx, nlam = layout.horizon, layout.nx, layout.nlam
+    rows = nx + T * nx + (T * nlam if layout.n_eta else 0)
+    A = np.zeros((rows, layout.size))
+    b = np.zeros(rows)
+    sx0 = layout.index(0, "x")
+    A[:nx, sx0] = np.eye(nx)
+    b[:nx] = x0
+    row = nx
+    for k in range(T):
+        block = slice(row, row + nx)
+        A[block, layout.index(k + 1, "x")] = np.eye(nx)
+        A[block, layout.index(k, "x")] = -lcs.A
+        A[block, layout.index(k, "u")] = -lcs.B
+        A[block, layout.index(k, "lam")] = -lcs.D
+        b[block] = lcs.d
+        row += nx
+    if layout.n_eta:
+        for k in range(T):
+            block = slice(row, row + nlam)
+            A[block, layout.index(k, "eta")] = np.eye(nlam)
+            A[block, layout.index(k, "x")] = -lcs.E
+            A[block, layout.index(k, "lam")] = -lcs.F
+            A[block, layout.index(k, "u")] = -lcs.H
+            b[block] = lcs.c
+            row += nlam
+    return A, b
+
+
+def _input_bounds(layout: HorizonLayout, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    lb = np.full(layout.size, -np.inf)
+    ub = np.full(layout.size, np.inf)
+    for k in range(layout.horizon):
+        su = layout.index(k, "u")
+        lb[su] = -limit
+        ub[su] = limit
+    return lb, ub
+
+
+def _check_horizon_arrays(name: str, value: np.ndarray | None, layout: HorizonLayout
+                          ) -> np.ndarray:
+    shape = (layout.horizon, layout.step_size)
+    if value is None:
+        return np.zeros(shape)
+    array = np.asarray(value, dtype=float)
+    if array.shape != shape:
+        raise ValueError(f"{name} must have shape {shape} (T x step size), got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} has non-finite entries")
+    return array
+
+
+def _check_x0(x0: np.ndarray, lcs: LCS) -> np.ndarray:
+    x0 = np.asarray(x0, dtype=float)
+    if x0.shape != (lcs.nx,):
+        raise ValueError(f"x0 must have shape ({lcs.nx},), got {x0.shape}")
+    if not np.all(np.isfinite(x0)):
+        raise ValueError("x0 has non-finite entries")
+    return x0
+
+
+def _check_models(lcs: LCS, mpc: MPC) -> None:
+    if not isinstance(mpc.horizon, int) or mpc.horizon < 1:
+        raise ValueError(f"T (horizon) must be an integer >= 1, got {mpc.horizon!r}")
+    if lcs.nx != mpc.nx or lcs.nu != mpc.nu:
+        raise ValueError(f"LCS (nx={lcs.nx}, nu={lcs.nu}) and MPC (nx={mpc.nx}, nu={mpc.nu}) "
+                         "disagree")
+
+
+def consensus_qp(
+    family: str,
+    name: str,
+    lcs: LCS,
+    mpc: MPC,
+    x0: np.ndarray,
+    rho: Mapping[str, float],
+    delta: np.ndarray | None = None,
+    w: np.ndarray | None = None,
+    input_bounds: bool = False,
+    meta: dict[str, Any] | None = None,
+) -> Problem:
+    """The ADMM QP step of C3+ (``family="c3plus_qp"``) or C3 (``"c3_qp"``).
+
+    ``min J(x, u) + sum_k (z_k - (delta_k - w_k))^T G_k (z_k - (delta_k - w_k))``.
+
+    Parameters
+    ----------
+    lcs, mpc
+        Model and cost.
+    x0
+        Measured state.
+    rho
+        Weights by block (``x``, ``lam``, ``u`` and, for C3+, ``eta``).
+    delta, w
+        Projection iterate and scaled dual (T x step size); zero when ``None``.
+    input_bounds
+        Add ``|u_k| <= force_limit``.
+    """
+    if family not in ("c3plus_qp", "c3_qp"):
+        raise ValueError(f"family must be 'c3plus_qp' or 'c3_qp', got {family!r}")
+    _check_models(lcs, mpc)
+    x0 = _check_x0(x0, lcs)
+    n_eta = lcs.nlam if family == "c3plus_qp" else 0
+    layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, n_eta, mpc.horizon)
+    weights = check_rho(rho, tuple(layout.block_sizes()))
+    delta = _check_horizon_arrays("delta", delta, layout)
+    w = _check_horizon_arrays("w", w, layout)
+    P, q, offset = _cost_terms(layout, mpc)
+    g = weight_vector(layout, weights)
+    anchor = delta - w
+    steps = layout.horizon * layout.step_size
+    P[np.arange(steps), np.arange(steps)] += 2 * np.tile(g, layout.horizon)
+    q[:steps] += -2 * (g * anchor).ravel()
+    offset += float(np.sum(g * anchor * anchor))
+    A, b = _dynamics_rows(layout, lcs, x0)
+    lb = ub = None
+    if input_bounds:
+        lb, ub = _input_bounds(layout, mpc.force_limit)
+    info = dict(meta or {})
+    info.update({"layout": layout.to_json(), "rho": weights, "input_bounds": input_bounds})
+    return Problem(
+        name=name, family=family, P=P, q=q, A=A, b=b, lb=lb, ub=ub,
+        objective_offset=offset, lcs=lcs,
+        data={"x0": x0, "delta": delta, "w": w, "G_diag": g},
+        meta=info,
+    )
+
+
+def mpcc(name: str, lcs: LCS, mpc: MPC, x0: np.ndarray,
+         meta: dict[str, Any] | None = None) -> Problem:
+    """The whole-horizon MPC with complementarity (the problem C3 approximates)."""
+    _check_models(lcs, mpc)
+    x0 = _check_x0(x0, lcs)
+    layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, mpc.horizon)
+    P, q, offset = _cost_terms(layout, mpc)
+    A, b = _dynamics_rows(layout, lcs, x0)
+    lb, ub = _input_bounds(layout, mpc.force_limit)
+    pairs = []
+    for k in range(layout.horizon):
+        lam, eta = layout.index(k, "lam"), layout.index(k, "eta")
+        lb[lam] = 0.0
+        lb[eta] = 0.0
+        pairs.extend(zip(range(lam.start, lam.stop), range(eta.start, eta.stop), strict=True))
+    info = dict(meta or {})
+    info["layout"] = layout.to_json()
+    return Problem(
+        name=name, family="mpcc", P=P, q=q, A=A, b=b, lb=lb, ub=ub,
+        complementarity=np.array(pairs, dtype=np.int64), objective_offset=offset, lcs=lcs,
+        data={"x0": x0}, meta=info,
+    )
+
+
+def projection(name: str, lcs: LCS, v: np.ndarray, U_diag: np.ndarray,
+               variant: str = "c3", meta: dict[str, Any] | None = None) -> Problem:
+    """One step's projection ``min (delta - v)^T U (delta - v)`` onto complementarity.
+
+    ``delta = (x, lam, u, eta)``. Variant ``c3``: ``eta = E x + F lam + H u + c`` is an
+    equality and ``U`` must be zero on ``eta`` (C3's projection on ``(x, lam, u)``); variant
+    ``c3plus``: no equality, so each pair ``(lam_i, eta_i)`` is projected on its own.
+    """
+    if variant not in ("c3", "c3plus"):
+        raise ValueError(f"variant must be 'c3' or 'c3plus', got {variant!r}")
+    nx, nlam, nu = lcs.nx, lcs.nlam, lcs.nu
+    size = nx + 2 * nlam + nu
+    v = np.asarray(v, dtype=float)
+    U = np.asarray(U_diag, dtype=float)
+    for label, value in (("v", v), ("U_diag", U)):
+        if value.shape != (size,):
+            raise ValueError(f"{label} must have shape ({size},), got {value.shape}")
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"{label} has non-finite entries")
+    if np.any(U < 0):
+        raise ValueError("U_diag must be >= 0")
+    x_s, lam_s = slice(0, nx), slice(nx, nx + nlam)
+    u_s, eta_s = slice(nx + nlam, nx + nlam + nu), slice(nx + nlam + nu, size)
+    A = b = None
+    if variant == "c3":
+        if np.any(U[eta_s] != 0):
+            raise ValueError("U_diag must be zero on eta for the c3 variant")
+        A = np.zeros((nlam, size))
+        A[:, eta_s] = np.eye(nlam)
+        A[:, x_s] = -lcs.E
+        A[:, lam_s] = -lcs.F
+        A[:, u_s] = -lcs.H
+        b = lcs.c.copy()
+    P = 2 * np.diag(U)
+    q = -2 * U * v
+    offset = float(np.sum(U * v * v))
+    lb = np.full(size, -np.inf)
+    lb[lam_s] = 0.0
+    lb[eta_s] = 0.0
+    pairs = np.column_stack([np.arange(lam_s.start, lam_s.stop),
+                             np.arange(eta_s.start, eta_s.stop)]).astype(np.int64)
+    info = dict(meta or {})
+    info.update({"variant": variant,
+                 "layout": HorizonLayout(nx, nlam, nu, nlam, 1).to_json()})
+    return Problem(name=name, family="projection", P=P, q=q, A=A, b=b, lb=lb,
+                   complementarity=pairs, objective_offset=offset, lcs=lcs,
+                   data={"v": v, "U_diag": U}, meta=info)
+
+
+def lcp(name: str, lcs: LCS, x: np.ndarray, u: np.ndarray,
+        meta: dict[str, Any] | None = None) -> Problem:
+    """The forward-simulation LCP of one step as ``min 1/2 lam^T F lam + q^T lam, lam >= 0``."""
+    if lcs.contact_model != "anitescu":
+        raise ValueError("the lcp family needs a symmetric F (contact_model 'anitescu')")
+    x = _check_x0(x, lcs)
+    u = np.asarray(u, dtype=float)
+    if u.shape != (lcs.nu,) or not np.all(np.isfinite(u)):
+        raise ValueError(f"u must be a finite vector of shape ({lcs.nu},)")
+    offset_q = lcs.lcp_offset(x, u)
+    return Problem(name=name, family="lcp", P=lcs.F.copy(), q=offset_q,
+                   lb=np.zeros(lcs.nlam), lcs=lcs, data={"x": x, "u": u},
+                   meta=dict(meta or {}))

@@ -1,0 +1,360 @@
+"""Subproblem instances: the shared ``Problem`` contract and its ``.npz`` + JSON storage.
+
+Every family is stored in one QP-with-complementarity form, following qpsolvers' names:
+
+    minimise    1/2 z^T P z + q^T z + objective_offset
+    subject to  A z = b,   G z <= h,   lb <= z <= ub,
+                0 <= z_i  perp  z_j >= 0   for every row (i, j) of ``complementarity``.
+
+``lcs`` holds the LCS the instance came from, ``data`` the family's own arrays (``x0``,
+``delta``, ``w``, ``G_diag``, ``v``, ``U_diag``, ...), ``meta`` its JSON metadata.
+
+Storage: ``<name>.npz`` (the arrays, written with fixed zip timestamps so that regenerating
+gives byte-identical files) and ``<name>.json`` (schema version, family, name, metadata and the
+list of array keys). Loading a file of another schema version, or one missing a key, raises
+:class:`InstanceFormatError` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from problems.lcs import LCS, LCS_MATRICES
+
+SCHEMA_VERSION = 1
+FAMILIES: tuple[str, ...] = ("c3plus_qp", "c3_qp", "projection", "mpcc", "lcp")
+QP_FIELDS: tuple[str, ...] = ("P", "q", "A", "b", "G", "h", "lb", "ub")
+REQUIRED_META: tuple[str, ...] = ("scene", "l", "dt", "T", "seed", "precision")
+
+
+class InstanceFormatError(ValueError):
+    """A stored instance cannot be read: wrong schema version, missing key or bad file."""
+
+
+@dataclass
+class Problem:
+    """One subproblem instance (see the module docstring for the form).
+
+    Attributes
+    ----------
+    name
+        Unique, file-safe name.
+    family
+        One of :data:`FAMILIES`.
+    P, q
+        Objective ``1/2 z^T P z + q^T z`` (P symmetric positive semi-definite, dense).
+    A, b
+        Equalities ``A z = b`` (``None`` when absent).
+    G, h
+        Inequalities ``G z <= h`` (``None`` when absent).
+    lb, ub
+        Bounds (``None`` when absent; entries may be infinite).
+    complementarity
+        Integer array (pairs x 2): ``0 <= z[i] perp z[j] >= 0``; ``None`` when absent.
+    objective_offset
+        Constant added to the objective, so that it equals the family's true cost.
+    lcs
+        The LCS the instance came from.
+    data
+        Family-specific arrays.
+    meta
+        JSON-serialisable metadata (family, scene, l, dt, T, rho, admm_iteration,
+        state_index, seed, precision, ...).
+    """
+
+    name: str
+    family: str
+    P: np.ndarray
+    q: np.ndarray
+    A: np.ndarray | None = None
+    b: np.ndarray | None = None
+    G: np.ndarray | None = None
+    h: np.ndarray | None = None
+    lb: np.ndarray | None = None
+    ub: np.ndarray | None = None
+    complementarity: np.ndarray | None = None
+    objective_offset: float = 0.0
+    lcs: LCS | None = None
+    data: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # --- sizes ----------------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        """Number of variables."""
+        return int(self.q.shape[0])
+
+    @property
+    def n_eq(self) -> int:
+        return 0 if self.A is None else int(self.A.shape[0])
+
+    @property
+    def n_ineq(self) -> int:
+        return 0 if self.G is None else int(self.G.shape[0])
+
+    @property
+    def n_pairs(self) -> int:
+        return 0 if self.complementarity is None else int(self.complementarity.shape[0])
+
+    @property
+    def n_bounded(self) -> int:
+        """Variables with at least one finite bound."""
+        finite = np.zeros(self.n, dtype=bool)
+        for bound in (self.lb, self.ub):
+            if bound is not None:
+                finite |= np.isfinite(bound)
+        return int(finite.sum())
+
+    # --- checks ---------------------------------------------------------------------------
+    def validate(self) -> None:
+        """Check shapes and values; raise ``ValueError`` naming the field at fault."""
+        if self.family not in FAMILIES:
+            raise ValueError(f"family must be one of {FAMILIES}, got {self.family!r}")
+        self.q = _as_float("q", self.q, ndim=1)
+        n = self.q.shape[0]
+        self.P = _as_float("P", self.P, shape=(n, n))
+        if not np.all(np.isfinite(self.P)):
+            raise ValueError(f"{self.name}: P has non-finite entries")
+        if not np.all(np.isfinite(self.q)):
+            raise ValueError(f"{self.name}: q has non-finite entries")
+        scale = max(1.0, float(np.max(np.abs(self.P), initial=0.0)))
+        if np.max(np.abs(self.P - self.P.T), initial=0.0) > 1e-9 * scale:
+            raise ValueError(f"{self.name}: P is not symmetric")
+        for matrix, vector in (("A", "b"), ("G", "h")):
+            M, v = getattr(self, matrix), getattr(self, vector)
+            if (M is None) != (v is None):
+                raise ValueError(f"{self.name}: {matrix} and {vector} must both be given or "
+                                 "both be None")
+            if M is None:
+                continue
+            M = _as_float(matrix, M, ndim=2)
+            if M.shape[1] != n:
+                raise ValueError(f"{self.name}: {matrix} must have {n} columns, got {M.shape}")
+            v = _as_float(vector, v, shape=(M.shape[0],))
+            for label, value in ((matrix, M), (vector, v)):
+                if not np.all(np.isfinite(value)):
+                    raise ValueError(f"{self.name}: {label} has non-finite entries")
+            setattr(self, matrix, M)
+            setattr(self, vector, v)
+        for bound in ("lb", "ub"):
+            value = getattr(self, bound)
+            if value is None:
+                continue
+            value = _as_float(bound, value, shape=(n,))
+            if np.any(np.isnan(value)):
+                raise ValueError(f"{self.name}: {bound} has NaN entries")
+            setattr(self, bound, value)
+        if self.lb is not None and self.ub is not None and np.any(self.lb > self.ub):
+            raise ValueError(f"{self.name}: lb > ub at index "
+                             f"{int(np.flatnonzero(self.lb > self.ub)[0])}")
+        if self.complementarity is not None:
+            pairs = np.asarray(self.complementarity)
+            if pairs.ndim != 2 or pairs.shape[1] != 2 or not np.issubdtype(pairs.dtype,
+                                                                           np.integer):
+                raise ValueError(f"{self.name}: complementarity must be an integer array of "
+                                 f"shape (pairs, 2), got {pairs.dtype} {pairs.shape}")
+            if pairs.size and (pairs.min() < 0 or pairs.max() >= n):
+                raise ValueError(f"{self.name}: complementarity indices outside 0..{n - 1}")
+            self.complementarity = pairs.astype(np.int64)
+        if not math.isfinite(self.objective_offset):
+            raise ValueError(f"{self.name}: objective_offset must be finite")
+        for key, value in self.data.items():
+            self.data[key] = np.asarray(value)
+
+    # --- evaluation -----------------------------------------------------------------------
+    def objective(self, z: np.ndarray) -> float:
+        """``1/2 z^T P z + q^T z + objective_offset``."""
+        z = np.asarray(z, dtype=float)
+        return float(0.5 * z @ self.P @ z + self.q @ z + self.objective_offset)
+
+    def qp_arrays(self) -> dict[str, np.ndarray | None]:
+        """The QP matrices by qpsolvers' names."""
+        return {name: getattr(self, name) for name in QP_FIELDS}
+
+    def summary(self) -> dict[str, Any]:
+        """Sizes for listings: variables, equality and inequality rows, pairs, bounds."""
+        return {"name": self.name, "family": self.family, "variables": self.n,
+                "equality_rows": self.n_eq, "inequality_rows": self.n_ineq,
+                "bounded_variables": self.n_bounded, "complementarity_pairs": self.n_pairs}
+
+
+def _as_float(name: str, value: Any, ndim: int | None = None,
+              shape: tuple[int, ...] | None = None) -> np.ndarray:
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{name} must be numeric: {error}") from error
+    if ndim is not None and array.ndim != ndim:
+        raise ValueError(f"{name} must be {ndim}-D, got shape {array.shape}")
+    if shape is not None and array.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+    return array
+
+
+# --- storage -------------------------------------------------------------------------------
+_FIXED_TIME = (1980, 1, 1, 0, 0, 0)
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write an uncompressed ``.npz`` with fixed timestamps (byte-reproducible), atomically."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
+        for key in sorted(arrays):
+            entry = io.BytesIO()
+            np.lib.format.write_array(entry, np.ascontiguousarray(arrays[key]),
+                                      allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=_FIXED_TIME)
+            info.external_attr = 0o644 << 16
+            archive.writestr(info, entry.getvalue())
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def atomic_write_bytes(path: Path, payload: bytes) -> None:
+    """Write ``payload`` to ``path`` through a temporary file and a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as stream:
+            stream.write(payload)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def problem_arrays(problem: Problem) -> dict[str, np.ndarray]:
+    """All arrays of an instance under their storage keys (``P``, ``lcs.A``, ``data.x0``...)."""
+    arrays: dict[str, np.ndarray] = {}
+    for name in QP_FIELDS:
+        value = getattr(problem, name)
+        if value is not None:
+            arrays[name] = value
+    if problem.complementarity is not None:
+        arrays["complementarity"] = problem.complementarity
+    if problem.lcs is not None:
+        for key, value in problem.lcs.arrays().items():
+            arrays[f"lcs.{key}"] = value
+    for key, value in problem.data.items():
+        arrays[f"data.{key}"] = value
+    return arrays
+
+
+def save_problem(problem: Problem, directory: str | Path) -> Path:
+    """Write ``<name>.npz`` and ``<name>.json`` into ``directory``; return the JSON path."""
+    directory = Path(directory)
+    arrays = problem_arrays(problem)
+    header: dict[str, Any] = {
+        "schema_version": SCHEMA_VERSION,
+        "name": problem.name,
+        "family": problem.family,
+        "objective_offset": problem.objective_offset,
+        "arrays": sorted(arrays),
+        "meta": problem.meta,
+    }
+    if problem.lcs is not None:
+        header["lcs"] = {
+            "dt": problem.lcs.dt,
+            "contact_model": problem.lcs.contact_model,
+            "n_contacts": problem.lcs.n_contacts,
+            "friction_directions": problem.lcs.friction_directions,
+        }
+    _write_npz(directory / f"{problem.name}.npz", arrays)
+    text = json.dumps(header, indent=2, sort_keys=True, allow_nan=False) + "\n"
+    json_path = directory / f"{problem.name}.json"
+    atomic_write_bytes(json_path, text.encode())
+    return json_path
+
+
+def _require(table: dict[str, Any], key: str, source: Path) -> Any:
+    if key not in table:
+        raise InstanceFormatError(f"{source}: missing key {key!r}")
+    return table[key]
+
+
+def load_problem(path: str | Path) -> Problem:
+    """Load an instance from its ``.json`` (or ``.npz``, or the common stem) path."""
+    path = Path(path)
+    json_path = path.with_suffix(".json") if path.suffix in (".npz", "") else path
+    npz_path = json_path.with_suffix(".npz")
+    try:
+        header = json.loads(json_path.read_text())
+    except FileNotFoundError as error:
+        raise InstanceFormatError(f"{json_path}: no such instance file") from error
+    except json.JSONDecodeError as error:
+        raise InstanceFormatError(f"{json_path}: not valid JSON ({error})") from error
+    version = _require(header, "schema_version", json_path)
+    if version != SCHEMA_VERSION:
+        raise InstanceFormatError(
+            f"{json_path}: key 'schema_version' is {version!r}, this c3bench reads "
+            f"{SCHEMA_VERSION}; regenerate the instances"
+        )
+    name = _require(header, "name", json_path)
+    family = _require(header, "family", json_path)
+    keys = _require(header, "arrays", json_path)
+    meta = _require(header, "meta", json_path)
+    for key in REQUIRED_META:
+        if key not in meta:
+            raise InstanceFormatError(f"{json_path}: missing key 'meta.{key}'")
+    try:
+        with np.load(npz_path, allow_pickle=False) as stored:
+            arrays = {key: stored[key] for key in stored.files}
+    except FileNotFoundError as error:
+        raise InstanceFormatError(f"{npz_path}: no such array file") from error
+    except (zipfile.BadZipFile, ValueError, OSError) as error:
+        raise InstanceFormatError(f"{npz_path}: unreadable ({error})") from error
+    for key in keys:
+        if key not in arrays:
+            raise InstanceFormatError(f"{npz_path}: missing key {key!r}")
+    for key in ("P", "q"):
+        if key not in arrays:
+            raise InstanceFormatError(f"{npz_path}: missing key {key!r}")
+    lcs = None
+    if "lcs" in header:
+        lcs_header = header["lcs"]
+        for key in LCS_MATRICES:
+            if f"lcs.{key}" not in arrays:
+                raise InstanceFormatError(f"{npz_path}: missing key 'lcs.{key}'")
+        lcs = LCS(
+            **{key: arrays[f"lcs.{key}"] for key in LCS_MATRICES},
+            dt=float(_require(lcs_header, "dt", json_path)),
+            contact_model=str(_require(lcs_header, "contact_model", json_path)),
+            n_contacts=int(_require(lcs_header, "n_contacts", json_path)),
+            friction_directions=int(_require(lcs_header, "friction_directions", json_path)),
+            phi=arrays.get("lcs.phi", np.zeros(0)),
+        )
+    data = {key[5:]: value for key, value in arrays.items() if key.startswith("data.")}
+    return Problem(
+        name=name, family=family,
+        **{key: arrays.get(key) for key in QP_FIELDS},
+        complementarity=arrays.get("complementarity"),
+        objective_offset=float(header.get("objective_offset", 0.0)),
+        lcs=lcs, data=data, meta=meta,
+    )
+
+
+def list_instances(directory: str | Path) -> list[Path]:
+    """The instance JSON files of a directory (recursively), sorted by path."""
+    return sorted(p for p in Path(directory).rglob("*.json")
+                  if not p.name.startswith(".") and p.with_suffix(".npz").exists())
+
+
+def load_instances(directory: str | Path, families: tuple[str, ...] | None = None
+                   ) -> list[Problem]:
+    """Load every instance below ``directory`` (optionally only some families)."""
+    problems = [load_problem(path) for path in list_instances(directory)]
+    if families is not None:
+        problems = [p for p in problems if p.family in families]
+    return problems

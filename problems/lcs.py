@@ -1,0 +1,371 @@
+"""Linear complementarity system (LCS) linearisation of the cube-tipping scene.
+
+The LCS (SPEC.md section 3) is
+
+    x_{k+1} = A x_k + B u_k + D lam_k + d,
+    0 <= lam_k  perp  E x_k + F lam_k + H u_k + c >= 0,
+
+derived from MuJoCo's mass matrix ``M``, smooth acceleration (bias, gravity compensation and
+actuator forces), contact frames, signed distances ``phi`` (``mj_geomDistance`` for the
+ball-cube pair, touching or not) and point Jacobians, never from MuJoCo's soft contact.
+
+With the smooth dynamics ``v' = M^-1 (tau - C v + B_u u)`` linearised as
+``J_q q + J_v v + J_u u + d_v``, ``q' = N v`` (``N^+`` its pseudo-inverse) and semi-implicit
+Euler of step ``dt``:
+
+* Anitescu (default): one force per contact ``i`` and friction direction ``j`` along
+  ``n_i + mu_i t_ij``; ``J_c = E_t^T J_n + mu J_t``;
+  ``A = [[I + dt^2 N J_q, dt N + dt^2 N J_v], [dt J_q, I + dt J_v]]``,
+  ``B = [dt^2 N J_u; dt J_u]``, ``d = [dt^2 N d_v; dt d_v]``,
+  ``D = [dt^2 N M^-1 J_c^T; dt M^-1 J_c^T]``,
+  ``E = [dt J_c J_q + E_t^T J_n N^+ / dt, J_c + dt J_c J_v]``, ``F = dt J_c M^-1 J_c^T``,
+  ``H = dt J_c J_u``, ``c = E_t^T phi / dt + dt J_c d_v - E_t^T J_n N^+ q_0 / dt``.
+* Stewart-Trinkle: ``lam = [gamma; lam_n; lam_t]`` with the slack ``gamma`` per contact;
+  rows: friction cone ``mu lam_n - E_t lam_t``, position-level gap
+  ``phi + dt J_n v_{k+1}``, and maximum dissipation ``E_t^T gamma + J_t v_{k+1}``.
+
+``E_t`` (contacts x directions) sums a contact's friction directions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import mujoco
+import numpy as np
+
+from problems.scene import Scene
+
+ContactModel = Literal["anitescu", "stewart_trinkle"]
+CONTACT_MODELS: tuple[str, ...] = ("anitescu", "stewart_trinkle")
+LCS_MATRICES: tuple[str, ...] = ("A", "B", "D", "d", "E", "F", "H", "c")
+
+
+@dataclass
+class LCS:
+    """A discrete-time LCS: ``x' = A x + B u + D lam + d``, ``0 <= lam perp E x + F lam + H u + c``.
+
+    Attributes
+    ----------
+    A, B, D, d, E, F, H, c
+        The LCS matrices (SPEC.md section 3).
+    dt
+        Time step (s).
+    contact_model
+        ``"anitescu"`` or ``"stewart_trinkle"``.
+    n_contacts, friction_directions
+        Contacts and friction directions per contact.
+    phi
+        Signed distances of the contacts at the linearisation point (m).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    D: np.ndarray
+    d: np.ndarray
+    E: np.ndarray
+    F: np.ndarray
+    H: np.ndarray
+    c: np.ndarray
+    dt: float
+    contact_model: str = "anitescu"
+    n_contacts: int = 0
+    friction_directions: int = 0
+    phi: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    @property
+    def nx(self) -> int:
+        return int(self.A.shape[0])
+
+    @property
+    def nu(self) -> int:
+        return int(self.B.shape[1])
+
+    @property
+    def nlam(self) -> int:
+        return int(self.D.shape[1])
+
+    def validate(self) -> None:
+        """Check shapes and finiteness; raise ``ValueError`` naming the offending matrix."""
+        nx, nu, nlam = self.A.shape[0], self.B.shape[1], self.D.shape[1]
+        expected = {
+            "A": (nx, nx), "B": (nx, nu), "D": (nx, nlam), "d": (nx,),
+            "E": (nlam, nx), "F": (nlam, nlam), "H": (nlam, nu), "c": (nlam,),
+        }
+        for name, shape in expected.items():
+            value = getattr(self, name)
+            if not isinstance(value, np.ndarray):
+                value = np.asarray(value, dtype=float)
+                setattr(self, name, value)
+            if value.shape != shape:
+                raise ValueError(f"LCS.{name} must have shape {shape}, got {value.shape}")
+            if not np.all(np.isfinite(value)):
+                raise ValueError(f"LCS.{name} has non-finite entries")
+        if not (math.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"LCS.dt must be a finite number > 0, got {self.dt!r}")
+
+    def next_state(self, x: np.ndarray, u: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        """``A x + B u + D lam + d``."""
+        return self.A @ x + self.B @ u + self.D @ lam + self.d
+
+    def lcp_offset(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``E x + H u + c``: the ``q`` of the step's LCP ``0 <= lam perp F lam + q >= 0``."""
+        return self.E @ x + self.H @ u + self.c
+
+    def gap(self, x: np.ndarray, u: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        """``E x + F lam + H u + c``."""
+        return self.lcp_offset(x, u) + self.F @ lam
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The matrices by name, plus ``phi``."""
+        out = {name: getattr(self, name) for name in LCS_MATRICES}
+        out["phi"] = self.phi
+        return out
+
+
+@dataclass
+class ContactFrames:
+    """Contact geometry at one configuration.
+
+    Attributes
+    ----------
+    phi
+        Signed distances, one per contact (m).
+    J_n
+        Normal Jacobians (contacts x nv): relative normal velocity ``J_n v``.
+    J_t
+        Tangential Jacobians (directions x nv), one row per friction direction.
+    mu
+        Friction coefficient per contact.
+    E_t
+        Contacts x directions, 1 where a direction belongs to a contact.
+    """
+
+    phi: np.ndarray
+    J_n: np.ndarray
+    J_t: np.ndarray
+    mu: np.ndarray
+    E_t: np.ndarray
+
+
+def _tangent_directions(normal: np.ndarray, planar: bool) -> list[np.ndarray]:
+    if planar:
+        tangent = np.array([normal[2], 0.0, -normal[0]])
+        tangent /= np.linalg.norm(tangent)
+        return [tangent, -tangent]
+    helper = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    t1 = np.cross(helper, normal)
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(normal, t1)
+    return [t1, -t1, t2, -t2]
+
+
+def contact_frames(scene: Scene) -> ContactFrames:
+    """Contact geometry of ``scene.data`` (kinematics must be current).
+
+    Contacts: each bottom corner of the cube with the table (normal +z, ``phi`` = corner
+    height above the table), then the ball with the cube (``mj_geomDistance``; normal from
+    the cube to the ball centre; ``phi`` negative when they overlap).
+    """
+    model, data = scene.model, scene.data
+    planar = scene.variant == "planar"
+    cube_body, ball_body = scene.body("cube"), scene.body("ball")
+    table_z = scene.config.scene.table_height
+    normal_rows: list[np.ndarray] = []
+    tangent_rows: list[np.ndarray] = []
+    phi: list[float] = []
+    mu: list[float] = []
+    jac_a = np.zeros((3, scene.nv))
+    jac_b = np.zeros((3, scene.nv))
+    up = np.array([0.0, 0.0, 1.0])
+    for site in scene.corner_sites:
+        point = data.site_xpos[site].copy()
+        mujoco.mj_jac(model, data, jac_a, None, point, cube_body)
+        phi.append(float(point[2] - table_z))
+        normal_rows.append(up @ jac_a)
+        tangent_rows.extend(t @ jac_a for t in _tangent_directions(up, planar))
+        mu.append(scene.config.scene.mu_table)
+    ball_geom, cube_geom = scene.geom("ball"), scene.geom("cube")
+    fromto = np.zeros(6)
+    distance = mujoco.mj_geomDistance(model, data, ball_geom, cube_geom, 10.0, fromto)
+    centre = data.geom_xpos[ball_geom]
+    normal = centre - fromto[:3]
+    normal /= np.linalg.norm(normal)
+    mujoco.mj_jac(model, data, jac_a, None, fromto[:3].copy(), ball_body)
+    mujoco.mj_jac(model, data, jac_b, None, fromto[3:].copy(), cube_body)
+    relative = jac_a - jac_b
+    phi.append(float(distance))
+    normal_rows.append(normal @ relative)
+    tangent_rows.extend(t @ relative for t in _tangent_directions(normal, planar))
+    mu.append(scene.config.scene.mu_ball)
+    n_contacts = len(phi)
+    per = scene.friction_directions
+    E_t = np.kron(np.eye(n_contacts), np.ones((1, per)))
+    return ContactFrames(
+        phi=np.array(phi), J_n=np.array(normal_rows), J_t=np.array(tangent_rows),
+        mu=np.array(mu), E_t=E_t,
+    )
+
+
+@dataclass
+class SmoothDynamics:
+    """Linearised smooth dynamics ``v' = J_q q + J_v v + J_u u + d_v``, kinematics ``q' = N v``."""
+
+    J_q: np.ndarray
+    J_v: np.ndarray
+    J_u: np.ndarray
+    d_v: np.ndarray
+    N: np.ndarray
+    N_pinv: np.ndarray
+    M_inv: np.ndarray
+
+
+def _smooth_acceleration(scene: Scene, q: np.ndarray, v: np.ndarray,
+                         u: np.ndarray) -> np.ndarray:
+    data = scene.data
+    data.qpos[:] = q
+    data.qvel[:] = v
+    data.ctrl[:] = u
+    mujoco.mj_forward(scene.model, data)
+    return data.qacc_smooth.copy()
+
+
+def smooth_dynamics(scene: Scene, x: np.ndarray, u: np.ndarray,
+                    eps: float = 1e-6) -> SmoothDynamics:
+    """Linearise MuJoCo's unconstrained acceleration by central differences.
+
+    ``J_q`` is taken in the tangent space (``mj_integratePos``) and mapped to ``q`` by ``N^+``.
+    Control clamping is disabled while differencing so that ``J_u`` is the actuator map.
+    Leaves ``scene.data`` at ``(x, u)`` with kinematics current.
+    """
+    model = scene.model
+    nq, nv, nu = scene.nq, scene.nv, scene.nu
+    q0, v0 = x[:nq].copy(), x[nq:].copy()
+    flags = model.opt.disableflags
+    model.opt.disableflags = flags | int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL)
+    try:
+        J_tangent = np.zeros((nv, nv))
+        N = np.zeros((nq, nv))
+        for i in range(nv):
+            step = np.zeros(nv)
+            step[i] = eps
+            q_plus, q_minus = q0.copy(), q0.copy()
+            mujoco.mj_integratePos(model, q_plus, step, 1.0)
+            mujoco.mj_integratePos(model, q_minus, step, -1.0)
+            N[:, i] = (q_plus - q_minus) / (2 * eps)
+            J_tangent[:, i] = (
+                _smooth_acceleration(scene, q_plus, v0, u)
+                - _smooth_acceleration(scene, q_minus, v0, u)
+            ) / (2 * eps)
+        J_v = np.zeros((nv, nv))
+        for i in range(nv):
+            dv = np.zeros(nv)
+            dv[i] = eps
+            J_v[:, i] = (
+                _smooth_acceleration(scene, q0, v0 + dv, u)
+                - _smooth_acceleration(scene, q0, v0 - dv, u)
+            ) / (2 * eps)
+        J_u = np.zeros((nv, nu))
+        for i in range(nu):
+            du = np.zeros(nu)
+            du[i] = eps
+            J_u[:, i] = (
+                _smooth_acceleration(scene, q0, v0, u + du)
+                - _smooth_acceleration(scene, q0, v0, u - du)
+            ) / (2 * eps)
+        acceleration = _smooth_acceleration(scene, q0, v0, u)
+    finally:
+        model.opt.disableflags = flags
+    N_pinv = np.linalg.pinv(N)
+    J_q = J_tangent @ N_pinv
+    M = np.zeros((nv, nv))
+    mujoco.mj_fullM(model, scene.data, M)
+    M_inv = np.linalg.inv(M)
+    M_inv = 0.5 * (M_inv + M_inv.T)
+    d_v = acceleration - J_q @ q0 - J_v @ v0 - J_u @ u
+    return SmoothDynamics(J_q=J_q, J_v=J_v, J_u=J_u, d_v=d_v, N=N, N_pinv=N_pinv, M_inv=M_inv)
+
+
+def check_dt(dt: float) -> float:
+    if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+    return float(dt)
+
+
+def linearize(
+    scene: Scene,
+    x: np.ndarray,
+    u: np.ndarray,
+    dt: float,
+    contact_model: ContactModel = "anitescu",
+) -> LCS:
+    """Linearise the scene into an LCS at state ``x`` and input ``u``.
+
+    Parameters
+    ----------
+    scene
+        The controller's model (its ``l`` may differ from the plant's).
+    x, u
+        Linearisation point: state ``(q, v)`` and ball force.
+    dt
+        Time step (s).
+    contact_model
+        ``"anitescu"`` (default) or ``"stewart_trinkle"``.
+    """
+    x = scene.check_state(x)
+    u = scene.check_input(u)
+    dt = check_dt(dt)
+    if contact_model not in CONTACT_MODELS:
+        raise ValueError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
+    nq, nv = scene.nq, scene.nv
+    dyn = smooth_dynamics(scene, x, u)
+    frames = contact_frames(scene)
+    q0 = x[:nq]
+    N, Np = dyn.N, dyn.N_pinv
+    A = np.block([
+        [np.eye(nq) + dt**2 * N @ dyn.J_q, dt * N + dt**2 * N @ dyn.J_v],
+        [dt * dyn.J_q, np.eye(nv) + dt * dyn.J_v],
+    ])
+    B = np.vstack([dt**2 * N @ dyn.J_u, dt * dyn.J_u])
+    d = np.concatenate([dt**2 * N @ dyn.d_v, dt * dyn.d_v])
+    Et = frames.E_t
+    mu_rows = Et.T @ frames.mu
+    if contact_model == "anitescu":
+        J = Et.T @ frames.J_n + mu_rows[:, None] * frames.J_t
+        E = np.hstack([dt * J @ dyn.J_q + Et.T @ frames.J_n @ Np / dt, J + dt * J @ dyn.J_v])
+        F = dt * J @ dyn.M_inv @ J.T
+        H = dt * J @ dyn.J_u
+        c = Et.T @ frames.phi / dt + dt * J @ dyn.d_v - Et.T @ frames.J_n @ Np @ q0 / dt
+    else:
+        nc = Et.shape[0]
+        Jn, Jt, Minv = frames.J_n, frames.J_t, dyn.M_inv
+        J = np.vstack([np.zeros((nc, nv)), Jn, Jt])
+        E = np.vstack([
+            np.zeros((nc, nq + nv)),
+            np.hstack([Jn @ Np + dt**2 * Jn @ dyn.J_q, dt * Jn + dt**2 * Jn @ dyn.J_v]),
+            np.hstack([dt * Jt @ dyn.J_q, Jt + dt * Jt @ dyn.J_v]),
+        ])
+        F = np.block([
+            [np.zeros((nc, nc)), np.diag(frames.mu), -Et],
+            [np.zeros((nc, nc)), dt**2 * Jn @ Minv @ Jn.T, dt**2 * Jn @ Minv @ Jt.T],
+            [Et.T, dt * Jt @ Minv @ Jn.T, dt * Jt @ Minv @ Jt.T],
+        ])
+        H = np.vstack([np.zeros((nc, scene.nu)), dt**2 * Jn @ dyn.J_u, dt * Jt @ dyn.J_u])
+        c = np.concatenate([
+            np.zeros(nc),
+            frames.phi - Jn @ Np @ q0 + dt**2 * Jn @ dyn.d_v,
+            dt * Jt @ dyn.d_v,
+        ])
+    D = np.vstack([dt**2 * N @ dyn.M_inv @ J.T, dt * dyn.M_inv @ J.T])
+    if contact_model == "anitescu":
+        F = 0.5 * (F + F.T)
+    return LCS(
+        A=A, B=B, D=D, d=d, E=E, F=F, H=H, c=c, dt=dt, contact_model=contact_model,
+        n_contacts=len(frames.phi), friction_directions=scene.friction_directions,
+        phi=frames.phi,
+    )

@@ -1,0 +1,149 @@
+"""The cube-tipping MPC: weights, goal state and the horizon variable layout.
+
+Cost (SPEC.md section 3):
+
+    J = sum_{k<T} (x_k - x*)^T Q (x_k - x*) + u_k^T R u_k  +  (x_T - x*)^T Q_f (x_T - x*),
+
+with ``Q`` diagonal (cube pose ``q_cube_pose``, ball position ``q_ball_position``, every velocity
+``q_velocity``), ``R = r_input I`` and ``Q_f = terminal_factor Q``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from problems.config import MPCConfig
+from problems.scene import Scene, target_state
+
+
+@dataclass
+class MPC:
+    """Weights, goal and limits of the MPC.
+
+    Attributes
+    ----------
+    Q, R, Q_f
+        Stage state weight, input weight and terminal weight.
+    x_target
+        Goal state ``x*``.
+    horizon
+        ``T``.
+    dt
+        Step (s).
+    force_limit
+        Bound on every input component (N).
+    """
+
+    Q: np.ndarray
+    R: np.ndarray
+    Q_f: np.ndarray
+    x_target: np.ndarray
+    horizon: int
+    dt: float
+    force_limit: float
+
+    @property
+    def nx(self) -> int:
+        return int(self.Q.shape[0])
+
+    @property
+    def nu(self) -> int:
+        return int(self.R.shape[0])
+
+    def cost(self, xs: np.ndarray, us: np.ndarray) -> float:
+        """``J`` for states ``xs`` (T+1 x nx) and inputs ``us`` (T x nu)."""
+        errors = xs - self.x_target
+        stage = np.einsum("ki,ij,kj->", errors[:-1], self.Q, errors[:-1])
+        inputs = np.einsum("ki,ij,kj->", us, self.R, us)
+        return float(stage + inputs + errors[-1] @ self.Q_f @ errors[-1])
+
+
+def build_mpc(scene: Scene, config: MPCConfig, cube_x0: float = 0.0) -> MPC:
+    """The MPC of ``config`` for ``scene``'s state layout; goal from :func:`target_state`."""
+    weights = np.full(scene.nx, config.q_velocity)
+    weights[scene.cube_pose_indices] = config.q_cube_pose
+    weights[scene.ball_position_indices] = config.q_ball_position
+    Q = np.diag(weights)
+    return MPC(
+        Q=Q,
+        R=config.r_input * np.eye(scene.nu),
+        Q_f=config.terminal_factor * Q,
+        x_target=target_state(scene, config.target_angle, cube_x0),
+        horizon=config.horizon,
+        dt=config.dt,
+        force_limit=scene.config.scene.force_limit,
+    )
+
+
+BLOCKS: tuple[str, ...] = ("x", "lam", "u", "eta")
+
+
+@dataclass(frozen=True)
+class HorizonLayout:
+    """Variable order of a horizon QP: ``z = (z_0, ..., z_{T-1}, x_T)``.
+
+    Each ``z_k = (x_k, lam_k, u_k, eta_k)`` (``eta`` absent when ``n_eta = 0``, as in C3's
+    QP); the terminal state ``x_T`` closes the vector.
+    """
+
+    nx: int
+    nlam: int
+    nu: int
+    n_eta: int
+    horizon: int
+
+    @property
+    def step_size(self) -> int:
+        return self.nx + self.nlam + self.nu + self.n_eta
+
+    @property
+    def size(self) -> int:
+        return self.horizon * self.step_size + self.nx
+
+    def block_sizes(self) -> dict[str, int]:
+        sizes = {"x": self.nx, "lam": self.nlam, "u": self.nu, "eta": self.n_eta}
+        return {name: size for name, size in sizes.items() if size > 0}
+
+    def offset(self, block: str) -> int:
+        """Offset of ``block`` inside one ``z_k``."""
+        position = 0
+        for name, size in self.block_sizes().items():
+            if name == block:
+                return position
+            position += size
+        raise KeyError(f"no block {block!r} in this layout")
+
+    def index(self, k: int, block: str) -> slice:
+        """Slice of ``block`` of step ``k`` in ``z`` (``k = T`` with block ``x`` is ``x_T``)."""
+        if k == self.horizon:
+            if block != "x":
+                raise KeyError("only x exists at k = T")
+            start = self.horizon * self.step_size
+            return slice(start, start + self.nx)
+        if not 0 <= k < self.horizon:
+            raise IndexError(f"step {k} outside 0..{self.horizon}")
+        start = k * self.step_size + self.offset(block)
+        return slice(start, start + self.block_sizes()[block])
+
+    def split(self, z: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-block trajectories: ``x`` (T+1 x nx), ``lam``, ``u``, ``eta`` (T x n)."""
+        z = np.asarray(z)
+        steps = z[: self.horizon * self.step_size].reshape(self.horizon, self.step_size)
+        out: dict[str, np.ndarray] = {}
+        for name, size in self.block_sizes().items():
+            start = self.offset(name)
+            out[name] = steps[:, start:start + size]
+        out["x"] = np.vstack([out["x"], z[self.horizon * self.step_size:][None, :]])
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return {"nx": self.nx, "nlam": self.nlam, "nu": self.nu, "n_eta": self.n_eta,
+                "horizon": self.horizon, "order": list(self.block_sizes())}
+
+    @classmethod
+    def from_json(cls, table: dict[str, Any]) -> HorizonLayout:
+        return cls(nx=int(table["nx"]), nlam=int(table["nlam"]), nu=int(table["nu"]),
+                   n_eta=int(table["n_eta"]), horizon=int(table["horizon"]))

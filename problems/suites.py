@@ -1,0 +1,318 @@
+"""Deterministic problem suites along a scripted push of the cube.
+
+A suite is generated in three steps:
+
+1. **Scripted push** of the true plant (``l = 0.30``): a PD law on the ball position drives it
+   to the near face of the cube, then pushes forward and up, for ``duration`` seconds; the
+   state and input are recorded every ``dt``.
+2. **States** are sampled evenly (``numpy.linspace`` over step indices) among the recorded
+   steps where the ball is within ``contact_band`` of the cube, so the subproblems are
+   contact-rich.
+3. **Instances** of every family are built at each sampled state from the controller's model
+   (``model_l``, the seed's shrunk 0.29 cube) linearised at that state.
+
+The ADMM iterates ``(delta, w)`` behind ``c3plus_qp``/``c3_qp``/``projection`` come from a
+*capture* function. Without one (the default of this module) a provisional, deterministic
+sequence is used: ``delta_k = (x0, 0, u_prev, 0)``, ``w = 0``, and for projections a seeded
+random point; its metadata says ``"capture": "provisional"``. The rho schedule is always the
+seed's: ``rho_x = 1``, ``rho_u = 0.1``, ``rho_lam = rho_eta = 50 * 2^i`` at ADMM iteration ``i``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from problems import families
+from problems.config import Config, load_config
+from problems.instance import Problem, atomic_write_bytes, save_problem
+from problems.lcs import LCS, contact_frames, linearize
+from problems.mpc import MPC, HorizonLayout, build_mpc
+from problems.scene import Plant, Scene, build_scene, home_state
+
+
+@dataclass(frozen=True)
+class SuiteSpec:
+    """What a suite contains.
+
+    Attributes
+    ----------
+    name
+        ``quick``, ``default`` or ``full``.
+    n_states
+        States sampled along the push.
+    admm_iterations
+        ADMM iterations at which QP steps are captured.
+    projection_iterations, projection_steps
+        ADMM iterations and horizon steps at which projections are captured.
+    model_l
+        Cube side of the controller's model.
+    variant
+        Scene variant.
+    seed
+        Seed of every random choice.
+    duration
+        Length of the scripted push (s).
+    contact_band
+        Ball-cube distance (m) below which a recorded step may be sampled.
+    """
+
+    name: str
+    n_states: int
+    admm_iterations: tuple[int, ...]
+    projection_iterations: tuple[int, ...]
+    projection_steps: tuple[int, ...] = (0, -1)
+    model_l: float = 0.29
+    variant: str = "planar"
+    seed: int = 0
+    duration: float = 1.5
+    contact_band: float = 0.02
+
+
+SUITES: dict[str, SuiteSpec] = {
+    "quick": SuiteSpec("quick", n_states=2, admm_iterations=(0, 3, 6, 9),
+                       projection_iterations=(0, 9)),
+    "default": SuiteSpec("default", n_states=6, admm_iterations=tuple(range(10)),
+                         projection_iterations=(0, 3, 6, 9)),
+    "full": SuiteSpec("full", n_states=16, admm_iterations=tuple(range(10)),
+                      projection_iterations=tuple(range(10)), projection_steps=(0, 3, -1)),
+}
+
+
+def seed_rho(iteration: int) -> dict[str, float]:
+    """The seed's schedule: ``rho_x = 1``, ``rho_u = 0.1``, ``rho_lam = rho_eta = 50 * 2^i``."""
+    if iteration < 0:
+        raise ValueError(f"ADMM iteration must be >= 0, got {iteration}")
+    grow = 50.0 * 2.0**iteration
+    return {"x": 1.0, "lam": grow, "u": 0.1, "eta": grow}
+
+
+@dataclass
+class PushRecord:
+    """States (steps+1 x nx) and inputs (steps x nu) of the scripted push, every ``dt``."""
+
+    states: np.ndarray
+    inputs: np.ndarray
+    ball_distance: np.ndarray
+    dt: float
+
+
+def scripted_push(config: Config | None = None, duration: float = 1.5,
+                  variant: str = "planar") -> PushRecord:
+    """Push the true cube with a PD law on the ball and record every ``dt``.
+
+    Waypoints (relative to the cube's initial centre): approach
+    ``(-l/2 - r + 0.005, 0.75 l)`` (just inside the near face) for 0.4 s, then move the ball
+    target forward at 0.2 m/s and up at 0.1 m/s. Force ``u = 100 (p_target - p) - 20 v``,
+    clipped to the force limit.
+    """
+    cfg = config or load_config()
+    plant_scene = build_scene(variant=variant, config=cfg)
+    plant = Plant(plant_scene)
+    x = home_state(plant_scene)
+    plant.reset(x)
+    dt = cfg.mpc.dt
+    steps = round(duration / dt)
+    l, r = plant_scene.l, cfg.scene.ball_radius
+    ball = plant_scene.ball_position_indices
+    approach = np.zeros(len(ball))
+    approach[0] = -l / 2 - r + 0.005
+    approach[-1] = 0.75 * l
+    states, inputs, distances = [x], [], []
+    limit = cfg.scene.force_limit
+    for k in range(steps):
+        t = k * dt
+        target = approach.copy()
+        if t > 0.4:
+            target[0] += 0.2 * (t - 0.4)
+            target[-1] += 0.1 * (t - 0.4)
+        position = x[ball]
+        velocity = x[plant_scene.nq + ball - (plant_scene.nq - plant_scene.nv)]
+        u = np.clip(100.0 * (target - position) - 20.0 * velocity, -limit, limit)
+        distances.append(_ball_distance(plant_scene, x))
+        x = plant.step(u, dt)
+        states.append(x)
+        inputs.append(u)
+    return PushRecord(np.array(states), np.array(inputs), np.array(distances), dt)
+
+
+def _ball_distance(scene: Scene, x: np.ndarray) -> float:
+    """Signed ball-cube distance at state ``x``."""
+    scene.data.qpos[:] = x[: scene.nq]
+    mujoco.mj_kinematics(scene.model, scene.data)
+    mujoco.mj_comPos(scene.model, scene.data)
+    return float(contact_frames(scene).phi[-1])
+
+
+def sample_states(record: PushRecord, n_states: int, band: float) -> list[int]:
+    """Evenly spaced step indices among the steps with the ball within ``band`` of the cube."""
+    if n_states < 1:
+        raise ValueError(f"n_states must be >= 1, got {n_states}")
+    candidates = np.flatnonzero(record.ball_distance <= band)
+    if candidates.size == 0:
+        candidates = np.arange(record.inputs.shape[0])
+    picks = np.linspace(0, candidates.size - 1, n_states).round().astype(int)
+    return sorted({int(candidates[i]) for i in picks})
+
+
+@dataclass
+class CaptureContext:
+    """Everything a capture function needs at one sampled state."""
+
+    spec: SuiteSpec
+    state_index: int
+    x0: np.ndarray
+    u_prev: np.ndarray
+    lcs: LCS
+    mpc: MPC
+    scene: Scene
+    rng: np.random.Generator
+    base_meta: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class CapturedIterate:
+    """One ADMM iteration's data: the QP's ``delta``/``w`` and rho, and the projection input.
+
+    ``delta``, ``w`` are (T x step size) in the C3+ layout ``(x, lam, u, eta)``; C3's QP
+    drops the ``eta`` columns. ``projection_v`` (T x step size) is the point each step's
+    projection receives (``z + w``).
+    """
+
+    iteration: int
+    rho: dict[str, float]
+    delta: np.ndarray
+    w: np.ndarray
+    projection_v: np.ndarray
+    source: str
+
+
+Capture = Callable[[CaptureContext], Iterable[CapturedIterate]]
+
+
+def provisional_capture(context: CaptureContext) -> list[CapturedIterate]:
+    """Deterministic stand-in for controller iterates (see the module docstring)."""
+    lcs, spec = context.lcs, context.spec
+    layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, context.mpc.horizon)
+    base = np.zeros(layout.step_size)
+    base[layout.index(0, "x")] = context.x0
+    base[layout.index(0, "u")] = context.u_prev
+    delta = np.tile(base, (layout.horizon, 1))
+    iterations = sorted(set(spec.admm_iterations) | set(spec.projection_iterations))
+    out = []
+    for i in iterations:
+        v = delta.copy()
+        lam_s, eta_s = layout.index(0, "lam"), layout.index(0, "eta")
+        x_s, u_s = layout.index(0, "x"), layout.index(0, "u")
+        for k in range(layout.horizon):
+            lam = np.abs(context.rng.normal(0.0, 2.0, lcs.nlam))
+            v[k, x_s] += context.rng.normal(0.0, 0.01, lcs.nx)
+            v[k, u_s] += context.rng.normal(0.0, 1.0, lcs.nu)
+            v[k, lam_s] = lam
+            v[k, eta_s] = lcs.gap(v[k, x_s], v[k, u_s], lam)
+        out.append(CapturedIterate(i, seed_rho(i), delta, np.zeros_like(delta), v,
+                                   "provisional"))
+    return out
+
+
+def _c3_columns(layout: HorizonLayout) -> np.ndarray:
+    """Columns of a C3+ step vector that C3's QP keeps (everything but eta)."""
+    keep = np.ones(layout.step_size, dtype=bool)
+    keep[layout.index(0, "eta")] = False
+    return keep
+
+
+def build_state_instances(context: CaptureContext, capture: Capture) -> list[Problem]:
+    """Every family's instances at one sampled state."""
+    spec, lcs, mpc = context.spec, context.lcs, context.mpc
+    layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, mpc.horizon)
+    keep = _c3_columns(layout)
+    tag = f"s{context.state_index:03d}"
+    problems: list[Problem] = []
+    for iterate in capture(context):
+        meta = dict(context.base_meta)
+        meta.update({"admm_iteration": iterate.iteration, "rho": iterate.rho,
+                     "capture": iterate.source})
+        if iterate.iteration in spec.admm_iterations:
+            problems.append(families.consensus_qp(
+                "c3plus_qp", f"c3plus_qp-{tag}-i{iterate.iteration:02d}", lcs, mpc,
+                context.x0, iterate.rho, iterate.delta, iterate.w, meta=meta))
+            c3_rho = {k: v for k, v in iterate.rho.items() if k != "eta"}
+            problems.append(families.consensus_qp(
+                "c3_qp", f"c3_qp-{tag}-i{iterate.iteration:02d}", lcs, mpc, context.x0,
+                c3_rho, iterate.delta[:, keep], iterate.w[:, keep], meta=meta))
+        if iterate.iteration in spec.projection_iterations:
+            weights = families.weight_vector(HorizonLayout(lcs.nx, lcs.nlam, lcs.nu,
+                                                           lcs.nlam, 1), iterate.rho)
+            for step in spec.projection_steps:
+                k = step % mpc.horizon
+                for variant in ("c3", "c3plus"):
+                    U = weights.copy()
+                    if variant == "c3":
+                        U[layout.index(0, "eta")] = 0.0
+                    step_meta = dict(meta, horizon_step=k)
+                    problems.append(families.projection(
+                        f"projection-{variant}-{tag}-i{iterate.iteration:02d}-k{k}", lcs,
+                        iterate.projection_v[k], U, variant, meta=step_meta))
+    meta = dict(context.base_meta)
+    problems.append(families.mpcc(f"mpcc-{tag}", lcs, mpc, context.x0, meta=meta))
+    problems.append(families.lcp(f"lcp-{tag}", lcs, context.x0, context.u_prev, meta=meta))
+    return problems
+
+
+def generate_suite(
+    suite: str | SuiteSpec,
+    out_dir: str | Path,
+    config: Config | None = None,
+    capture: Capture | None = None,
+    progress: bool = True,
+) -> list[Path]:
+    """Generate and save a suite's instances under ``out_dir/<family>/``.
+
+    Returns the written JSON paths. A ``manifest.json`` records the suite, its arguments,
+    the sampled states and the instance counts. Regenerating with the same arguments writes
+    byte-identical files.
+    """
+    spec = SUITES[suite] if isinstance(suite, str) else suite
+    if isinstance(suite, str) and suite not in SUITES:
+        raise ValueError(f"unknown suite {suite!r}; known: {', '.join(SUITES)}")
+    cfg = config or load_config()
+    capture = capture or provisional_capture
+    out = Path(out_dir)
+    record = scripted_push(cfg, spec.duration, spec.variant)
+    indices = sample_states(record, spec.n_states, spec.contact_band)
+    model_scene = build_scene(l=spec.model_l, variant=spec.variant, config=cfg)  # type: ignore[arg-type]
+    mpc = build_mpc(model_scene, cfg.mpc)
+    written: list[Path] = []
+    counts: dict[str, int] = {}
+    iterator: Iterable[int] = indices
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(indices, desc=f"generating {spec.name}", unit="state")
+    for index in iterator:
+        x0, u_prev = record.states[index], record.inputs[max(index - 1, 0)]
+        lcs = linearize(model_scene, x0, u_prev, cfg.mpc.dt)
+        base_meta: dict[str, Any] = {
+            "suite": spec.name, "scene": spec.variant, "l": spec.model_l,
+            "l_plant": cfg.scene.cube_side, "dt": cfg.mpc.dt, "T": cfg.mpc.horizon,
+            "state_index": index, "time": round(index * cfg.mpc.dt, 10),
+            "seed": spec.seed, "precision": "float64", "contact_model": lcs.contact_model,
+            "target_angle": cfg.mpc.target_angle,
+        }
+        context = CaptureContext(spec, index, x0, u_prev, lcs, mpc, model_scene,
+                                 np.random.default_rng([spec.seed, index]), base_meta)
+        for problem in build_state_instances(context, capture):
+            written.append(save_problem(problem, out / problem.family))
+            counts[problem.family] = counts.get(problem.family, 0) + 1
+    manifest = {"suite": asdict(spec), "states": indices, "counts": dict(sorted(counts.items())),
+                "config": {"scene": asdict(cfg.scene), "mpc": asdict(cfg.mpc)}}
+    atomic_write_bytes(out / "manifest.json",
+                       (json.dumps(manifest, indent=2, sort_keys=True) + "\n").encode())
+    return written

@@ -1,0 +1,128 @@
+"""Pivoting and iterative solvers of the linear complementarity problem.
+
+``LCP(M, q)``: find ``z >= 0`` with ``w = M z + q >= 0`` and ``z^T w = 0``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class LCPSolution:
+    """Outcome of an LCP solve.
+
+    Attributes
+    ----------
+    z
+        The solution (``None`` when not found).
+    found
+        Whether the method terminated at a solution.
+    status
+        Why it stopped.
+    iterations
+        Pivots (Lemke) or sweeps (PGS).
+    residuals
+        Per-iteration natural-map residual ``||min(z, M z + q)||_inf`` (PGS only).
+    """
+
+    z: np.ndarray | None
+    found: bool
+    status: str
+    iterations: int
+    residuals: list[float]
+
+
+def natural_residual(M: np.ndarray, q: np.ndarray, z: np.ndarray) -> float:
+    """``||min(z, M z + q)||_inf``: zero exactly at a solution of the LCP."""
+    return float(np.max(np.abs(np.minimum(z, M @ z + q)), initial=0.0))
+
+
+def lemke(M: np.ndarray, q: np.ndarray, max_pivots: int | None = None,
+          tol: float = 1e-12) -> LCPSolution:
+    """Lemke's complementary pivoting method with covering vector ``e = 1``.
+
+    Solves the tableau ``w - M z - e z0 = q``. Terminates at a solution for P-matrices and,
+    for copositive-plus ``M`` (symmetric PSD included), whenever the LCP is feasible; a
+    secondary ray means no solution was found. Ties in the ratio test prefer the artificial
+    variable ``z0``, then the lowest row.
+    """
+    M = np.asarray(M, dtype=float)
+    q = np.asarray(q, dtype=float)
+    n = q.size
+    if M.shape != (n, n):
+        raise ValueError(f"M must have shape ({n}, {n}), got {M.shape}")
+    if n == 0 or np.all(q >= 0):
+        return LCPSolution(np.zeros(n), True, "trivial: q >= 0", 0, [])
+    limit = max_pivots if max_pivots is not None else 50 * (n + 1)
+    artificial = 2 * n
+    tableau = np.hstack([np.eye(n), -M, -np.ones((n, 1)), q[:, None]])
+    basis = list(range(n))
+
+    def pivot(row: int, column: int) -> None:
+        tableau[row] /= tableau[row, column]
+        others = np.arange(n) != row
+        tableau[others] -= np.outer(tableau[others, column], tableau[row])
+
+    row = int(np.argmin(q))
+    pivot(row, artificial)
+    leaving = basis[row]
+    basis[row] = artificial
+    for count in range(1, limit + 1):
+        entering = leaving + n if leaving < n else leaving - n
+        column = tableau[:, entering]
+        positive = column > tol
+        if not np.any(positive):
+            return LCPSolution(None, False, "secondary ray: no solution found", count, [])
+        ratios = np.full(n, np.inf)
+        ratios[positive] = tableau[positive, -1] / column[positive]
+        best = ratios.min()
+        candidates = np.flatnonzero(ratios <= best + tol * max(1.0, abs(best)))
+        row = int(candidates[0])
+        for candidate in candidates:
+            if basis[candidate] == artificial:
+                row = int(candidate)
+                break
+        pivot(row, entering)
+        leaving = basis[row]
+        basis[row] = entering
+        if leaving == artificial:
+            z = np.zeros(n)
+            for i, var in enumerate(basis):
+                if n <= var < 2 * n:
+                    z[var - n] = tableau[i, -1]
+            return LCPSolution(np.maximum(z, 0.0), True, "solved", count, [])
+    return LCPSolution(None, False, f"pivot limit {limit} reached", limit, [])
+
+
+def projected_gauss_seidel(M: np.ndarray, q: np.ndarray, tol: float = 1e-8,
+                           max_iterations: int = 10_000,
+                           z0: np.ndarray | None = None) -> LCPSolution:
+    """Projected Gauss-Seidel: ``z_i <- max(0, z_i - (q_i + M_i z) / M_ii)``, sweep by sweep.
+
+    Converges for symmetric PSD ``M`` with a positive diagonal; stops when the natural
+    residual ``||min(z, M z + q)||_inf`` falls below ``tol``.
+    """
+    M = np.asarray(M, dtype=float)
+    q = np.asarray(q, dtype=float)
+    n = q.size
+    diagonal = np.diag(M).copy()
+    if np.any(diagonal <= 0):
+        bad = int(np.flatnonzero(diagonal <= 0)[0])
+        return LCPSolution(None, False, f"PGS needs M_ii > 0 (M[{bad},{bad}] = "
+                           f"{diagonal[bad]:.3g})", 0, [])
+    z = np.zeros(n) if z0 is None else np.maximum(np.asarray(z0, dtype=float), 0.0)
+    residuals: list[float] = []
+    for sweep in range(1, max_iterations + 1):
+        for i in range(n):
+            z[i] = max(0.0, z[i] - (q[i] + M[i] @ z) / diagonal[i])
+        residual = natural_residual(M, q, z)
+        residuals.append(residual)
+        if not np.isfinite(residual):
+            return LCPSolution(None, False, "diverged (non-finite)", sweep, residuals)
+        if residual <= tol:
+            return LCPSolution(z, True, "solved", sweep, residuals)
+    return LCPSolution(z, False, f"iteration limit {max_iterations} reached",
+                       max_iterations, residuals)

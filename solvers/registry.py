@@ -1,0 +1,291 @@
+"""Registry of solver backends and the guarded ``solve`` every caller goes through.
+
+``solve`` is where robustness lives, once for all backends: it validates the instance (finite
+data, symmetric positive semi-definite ``P``), checks that the backend is installed and takes
+the family and precision, runs the backend in a forked child process under a wall-clock limit
+(killed when it overruns), turns any exception or crash into a recorded failure, and rejects
+non-finite answers. Warm-up and repeats happen inside the same child, with BLAS pinned to one
+thread, so timings exclude process start and first-call costs.
+"""
+
+from __future__ import annotations
+
+import importlib
+import multiprocessing
+import statistics
+import threading
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from problems.instance import Problem
+from solvers.base import Backend, Result, Settings, WarmStart
+from solvers.timing import single_thread_blas
+
+# Modules that define backends; each registers its backends on import.
+BACKEND_MODULES: tuple[str, ...] = (
+    "solvers.backends.qp",
+    "solvers.backends.kkt",
+    "solvers.backends.lcp",
+    "solvers.backends.miqp",
+    "solvers.backends.nlp",
+    "solvers.backends.c3",
+)
+
+_BACKENDS: dict[str, Backend] = {}
+_MODULE_ERRORS: dict[str, str] = {}
+_LOADED = False
+
+
+def register(backend: Backend) -> Backend:
+    """Add a backend instance to the registry (its ``name`` must be new)."""
+    if not backend.name:
+        raise ValueError("a backend needs a name")
+    if backend.name in _BACKENDS and type(_BACKENDS[backend.name]) is not type(backend):
+        raise ValueError(f"backend {backend.name!r} is registered twice")
+    _BACKENDS[backend.name] = backend
+    return backend
+
+
+def _load() -> None:
+    global _LOADED
+    if _LOADED:
+        return
+    _LOADED = True
+    for module in BACKEND_MODULES:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as error:
+            if error.name == module:
+                continue  # that group of backends is not part of this checkout yet
+            _MODULE_ERRORS[module] = f"{type(error).__name__}: {error}"
+        except Exception as error:  # noqa: BLE001 - recorded, never raised
+            _MODULE_ERRORS[module] = f"{type(error).__name__}: {error}"
+
+
+def backends() -> dict[str, Backend]:
+    """All registered backends by name."""
+    _load()
+    return dict(sorted(_BACKENDS.items()))
+
+
+def get(name: str) -> Backend:
+    """The backend called ``name``; ``KeyError`` lists the known names."""
+    known = backends()
+    if name not in known:
+        raise KeyError(f"unknown solver {name!r}; known: {', '.join(known)}")
+    return known[name]
+
+
+@dataclass
+class BackendInfo:
+    """One row of the registry table."""
+
+    name: str
+    available: bool
+    reason: str
+    version: str
+    families: tuple[str, ...]
+    precisions: tuple[str, ...]
+    description: str
+
+
+def available() -> list[BackendInfo]:
+    """Every backend with availability, version and accepted families."""
+    rows = []
+    for name, backend in backends().items():
+        ok, reason = backend.availability()
+        try:
+            version = backend.version() if ok else "-"
+        except Exception as error:  # noqa: BLE001 - recorded, never raised
+            version = f"unknown ({error})"
+        rows.append(BackendInfo(name, ok, reason, version, backend.families,
+                                backend.precisions, backend.description))
+    return rows
+
+
+def module_errors() -> dict[str, str]:
+    """Backend modules that failed to import, with the error."""
+    _load()
+    return dict(_MODULE_ERRORS)
+
+
+def check_problem(problem: Problem) -> str:
+    """``""`` when ``problem`` is well posed for a convex solver, else the reason.
+
+    Checks finiteness and shapes (``Problem.validate``) and that ``P`` is positive
+    semi-definite: ``lambda_min(P) >= -1e-8 max(1, ||P||)``.
+    """
+    try:
+        problem.validate()
+    except ValueError as error:
+        return str(error)
+    if problem.n == 0:
+        return "problem has no variables"
+    eigenvalues = np.linalg.eigvalsh(problem.P)
+    scale = max(1.0, float(np.max(np.abs(eigenvalues), initial=0.0)))
+    if eigenvalues[0] < -1e-8 * scale:
+        return (f"P is not positive semi-definite (smallest eigenvalue "
+                f"{eigenvalues[0]:.3g})")
+    return ""
+
+
+def _finish(result: Result, problem: Problem) -> Result:
+    """Reject non-finite answers and fill the objective."""
+    if result.found:
+        if result.x is None or np.shape(result.x) != (problem.n,):
+            return Result.failed(result.solver, problem.name, "non_finite",
+                                 f"solver reported success but returned no solution of "
+                                 f"size {problem.n}", iterations=result.iterations,
+                                 build_time=result.build_time, solve_time=result.solve_time)
+        if not np.all(np.isfinite(result.x)):
+            return Result.failed(result.solver, problem.name, "non_finite",
+                                 "solver returned a non-finite solution",
+                                 iterations=result.iterations, build_time=result.build_time,
+                                 solve_time=result.solve_time, x=np.asarray(result.x))
+    if result.x is not None and result.objective is None and np.all(np.isfinite(result.x)):
+        result.objective = problem.objective(result.x)
+    return result
+
+
+def _run_repeats(backend: Backend, problem: Problem, settings: Settings,
+                 warm_start: WarmStart | None, repeats: int, warmup: bool) -> Result:
+    """Warm-up (untimed) then ``repeats`` solves; times are the medians."""
+    with single_thread_blas():
+        if warmup:
+            backend.solve(problem, settings, warm_start)
+        results = [backend.solve(problem, settings, warm_start) for _ in range(repeats)]
+    result = results[-1]
+    if repeats > 1:
+        result.build_time = statistics.median(r.build_time for r in results)
+        result.solve_time = statistics.median(r.solve_time for r in results)
+    return result
+
+
+def _child(connection: Any, call: Callable[[], Result]) -> None:
+    try:
+        outcome: tuple[str, Any] = ("ok", call())
+    except BaseException as error:  # noqa: BLE001 - recorded, never raised
+        outcome = ("error", f"{type(error).__name__}: {error}\n{traceback.format_exc(limit=4)}")
+    try:
+        connection.send(outcome)
+    finally:
+        connection.close()
+
+
+def _isolated(call: Callable[[], Result], time_limit: float, solver: str,
+              problem: str) -> Result:
+    """Run ``call`` in a forked child; kill it after ``time_limit`` seconds."""
+    context = multiprocessing.get_context("fork")
+    receiver, sender = context.Pipe(duplex=False)
+    try:
+        process = context.Process(target=_child, args=(sender, call), daemon=True)
+        process.start()
+    except AssertionError:
+        # daemonic workers may not fork children: fall back to a watched thread
+        return _threaded(call, time_limit, solver, problem)
+    sender.close()
+    try:
+        if receiver.poll(time_limit):
+            try:
+                kind, payload = receiver.recv()
+            except EOFError:
+                kind, payload = "crash", None
+        else:
+            kind, payload = "timeout", None
+    finally:
+        receiver.close()
+        if process.is_alive():
+            process.kill()
+        process.join(5)
+    if kind == "ok":
+        return payload
+    if kind == "timeout":
+        return Result.failed(solver, problem, "timeout",
+                             f"time limit of {time_limit:g} s exceeded; process killed",
+                             solve_time=time_limit)
+    if kind == "crash":
+        return Result.failed(solver, problem, "error",
+                             f"solver process died (exit code {process.exitcode})")
+    return Result.failed(solver, problem, "error", str(payload).strip())
+
+
+def _threaded(call: Callable[[], Result], time_limit: float, solver: str,
+              problem: str) -> Result:
+    box: dict[str, Any] = {}
+
+    def target() -> None:
+        try:
+            box["result"] = call()
+        except BaseException as error:  # noqa: BLE001 - recorded, never raised
+            box["error"] = f"{type(error).__name__}: {error}"
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    thread.join(time_limit)
+    if thread.is_alive():
+        return Result.failed(solver, problem, "timeout",
+                             f"time limit of {time_limit:g} s exceeded (thread abandoned)",
+                             solve_time=time_limit)
+    if "error" in box:
+        return Result.failed(solver, problem, "error", box["error"])
+    return box["result"]
+
+
+def solve(name: str, problem: Problem, settings: Settings | None = None,
+          warm_start: WarmStart | None = None, repeats: int = 1, warmup: bool = False,
+          isolate: bool = True, check: bool = True) -> Result:
+    """Solve ``problem`` with backend ``name``; never raises for a solver's misbehaviour.
+
+    Parameters
+    ----------
+    name
+        Registry name.
+    problem
+        The instance.
+    settings
+        Profile, tolerance, time limit, precision (default profile when ``None``).
+    warm_start
+        Initial guess passed to the backend.
+    repeats, warmup
+        Timed repeats (median reported) after an optional untimed warm-up solve.
+    isolate
+        Run in a child process with the time limit enforced by killing it (default). With
+        ``False`` the solve runs in this process and the limit is enforced by abandoning a
+        watcher thread.
+    check
+        Validate the instance first (finiteness, symmetric PSD ``P``: an eigen-decomposition).
+        Callers that built the instance themselves in a hot loop may skip it.
+    """
+    settings = settings or Settings()
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    try:
+        backend = get(name)
+    except KeyError as error:
+        return Result.failed(name, problem.name, "unavailable", str(error.args[0]))
+    ok, reason = backend.availability()
+    if not ok:
+        return Result.failed(name, problem.name, "unavailable", reason)
+    accepted, reason = backend.accepts(problem)
+    if not accepted:
+        return Result.failed(name, problem.name, "unsupported", reason)
+    if settings.precision not in backend.precisions:
+        return Result.failed(name, problem.name, "unsupported",
+                             f"{name} does not run in {settings.precision}")
+    reason = check_problem(problem) if check else ""
+    if reason:
+        return Result.failed(name, problem.name, "invalid_input", reason)
+
+    def call() -> Result:
+        return _run_repeats(backend, problem, settings, warm_start, repeats, warmup)
+
+    budget = settings.time_limit * (repeats + (1 if warmup else 0))
+    if isolate:
+        result = _isolated(call, budget, name, problem.name)
+    else:
+        result = _threaded(call, budget, name, problem.name)
+    return _finish(result, problem)

@@ -1,0 +1,127 @@
+"""The one residual module: every accuracy figure in c3bench is computed here.
+
+Definitions follow qpsolvers' ``Solution`` (infinity norms), for
+``min 1/2 x^T P x + q^T x`` s.t. ``A x = b``, ``G x <= h``, ``lb <= x <= ub``:
+
+* primal residual ``max(||A x - b||, ||[G x - h]_+||, ||[lb - x]_+||, ||[x - ub]_+||)``;
+* dual residual ``||P x + q + A^T y + G^T z + z_box||``;
+* duality gap ``|x^T P x + q^T x + b^T y + h^T z + lb^T [z_box]_- + ub^T [z_box]_+|``
+  (infinite bounds skipped);
+* complementarity violation ``max_pairs |min(x_i, x_j)|`` (the natural-map residual of
+  ``0 <= x_i perp x_j >= 0``);
+* cost error ``|f(x) - f*| / max(1, |f*|)`` against a reference optimum ``f*``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from problems.instance import Problem
+
+
+def _inf_norm(vector: np.ndarray) -> float:
+    return float(np.max(np.abs(vector), initial=0.0))
+
+
+def primal_residual(problem: Problem, x: np.ndarray) -> float:
+    """Largest violation of the equalities, inequalities and bounds."""
+    x = np.asarray(x, dtype=float)
+    parts = [0.0]
+    if problem.A is not None:
+        parts.append(_inf_norm(problem.A @ x - problem.b))
+    if problem.G is not None:
+        parts.append(_inf_norm(np.maximum(problem.G @ x - problem.h, 0.0)))
+    if problem.lb is not None:
+        finite = np.isfinite(problem.lb)
+        parts.append(_inf_norm(np.maximum(problem.lb[finite] - x[finite], 0.0)))
+    if problem.ub is not None:
+        finite = np.isfinite(problem.ub)
+        parts.append(_inf_norm(np.maximum(x[finite] - problem.ub[finite], 0.0)))
+    return max(parts)
+
+
+def _zeros_if_none(value: np.ndarray | None, size: int) -> np.ndarray:
+    return np.zeros(size) if value is None else np.asarray(value, dtype=float)
+
+
+def dual_residual(problem: Problem, x: np.ndarray, y: np.ndarray | None,
+                  z: np.ndarray | None, z_box: np.ndarray | None) -> float:
+    """``||P x + q + A^T y + G^T z + z_box||_inf``."""
+    x = np.asarray(x, dtype=float)
+    gradient = problem.P @ x + problem.q
+    if problem.A is not None:
+        gradient = gradient + problem.A.T @ _zeros_if_none(y, problem.n_eq)
+    if problem.G is not None:
+        gradient = gradient + problem.G.T @ _zeros_if_none(z, problem.n_ineq)
+    if problem.lb is not None or problem.ub is not None:
+        gradient = gradient + _zeros_if_none(z_box, problem.n)
+    return _inf_norm(gradient)
+
+
+def duality_gap(problem: Problem, x: np.ndarray, y: np.ndarray | None,
+                z: np.ndarray | None, z_box: np.ndarray | None) -> float:
+    """``|x^T P x + q^T x + b^T y + h^T z + lb^T [z_box]_- + ub^T [z_box]_+|``."""
+    x = np.asarray(x, dtype=float)
+    gap = float(x @ problem.P @ x + problem.q @ x)
+    if problem.A is not None:
+        gap += float(problem.b @ _zeros_if_none(y, problem.n_eq))
+    if problem.G is not None:
+        gap += float(problem.h @ _zeros_if_none(z, problem.n_ineq))
+    box = _zeros_if_none(z_box, problem.n)
+    if problem.lb is not None:
+        finite = np.isfinite(problem.lb)
+        gap += float(problem.lb[finite] @ np.minimum(box[finite], 0.0))
+    if problem.ub is not None:
+        finite = np.isfinite(problem.ub)
+        gap += float(problem.ub[finite] @ np.maximum(box[finite], 0.0))
+    return abs(gap)
+
+
+def complementarity_violation(problem: Problem, x: np.ndarray) -> float:
+    """``max |min(x_i, x_j)|`` over the complementarity pairs (0 without pairs)."""
+    if problem.complementarity is None or problem.n_pairs == 0:
+        return 0.0
+    x = np.asarray(x, dtype=float)
+    pairs = problem.complementarity
+    return _inf_norm(np.minimum(x[pairs[:, 0]], x[pairs[:, 1]]))
+
+
+def cost_error(objective: float, reference: float) -> float:
+    """``|f - f*| / max(1, |f*|)``."""
+    return abs(objective - reference) / max(1.0, abs(reference))
+
+
+@dataclass
+class Residuals:
+    """All accuracy figures of one solution."""
+
+    primal: float
+    dual: float
+    gap: float
+    complementarity: float
+
+    def worst(self, include_dual: bool = True) -> float:
+        values = [self.primal, self.complementarity]
+        if include_dual:
+            values += [self.dual, self.gap]
+        return max(values)
+
+
+def residuals(problem: Problem, x: np.ndarray, y: np.ndarray | None = None,
+              z: np.ndarray | None = None, z_box: np.ndarray | None = None) -> Residuals:
+    """Primal and dual residuals, duality gap and complementarity violation at once.
+
+    Dual residual and gap are ``nan`` when the solver returned no duals for a problem that has
+    constraints (they cannot be computed, and are never counted as zero).
+    """
+    has_constraints = problem.n_eq + problem.n_ineq > 0 or problem.lb is not None \
+        or problem.ub is not None
+    missing_duals = has_constraints and y is None and z is None and z_box is None
+    return Residuals(
+        primal=primal_residual(problem, x),
+        dual=float("nan") if missing_duals else dual_residual(problem, x, y, z, z_box),
+        gap=float("nan") if missing_duals else duality_gap(problem, x, y, z, z_box),
+        complementarity=complementarity_violation(problem, x),
+    )
