@@ -344,7 +344,8 @@ def render_frame(scene: Scene, x: np.ndarray, path: str | Path, width: int = 640
                  height: int = 480) -> Path:
     """Render the scene at state ``x`` to a PNG file.
 
-    Needs an off-screen OpenGL backend (``MUJOCO_GL=egl`` or ``osmesa``); raises
+    Needs an off-screen OpenGL backend (``MUJOCO_GL=egl``, chosen automatically when libEGL is
+    installed, or ``osmesa``); raises
     :class:`RenderUnavailable` with the reason where none can create a context.
     """
     x = scene.check_state(x)
