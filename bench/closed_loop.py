@@ -1,0 +1,258 @@
+"""Closed loop: a controller replans every ``dt`` from the measured MuJoCo state and drives the
+true plant (``l = 0.30``) with its first input held for ``dt`` (zero-order hold).
+
+Outcome metrics (SPEC.md section 5): cube angle error at the end, success, control-step wall
+time (median, p95; LCS build and solve apart), NaN / fallback counts, and an automatic
+failure-mode label computed from the trajectory by :func:`label_failure_mode`.
+
+Failure-mode rules (thresholds in :class:`FailureRules`), checked in this order:
+
+0. **success**: ``|theta(T_end) - theta*| <= success_tolerance`` and the pivot (far bottom
+   corner) moved less than ``pivot_slip`` in x.
+4. **no motion**: ``max |theta| < still_angle`` and the cube centre moved less than
+   ``still_shift``.
+2. **backing off**: before the cube first tips past ``tip_start``, the ball retreats by more than
+   ``back_off`` in -x from its starting x.
+1. **fast sliding past the edge**: the ball rises above the cube's top face (in the cube frame)
+   while its speed exceeds ``fast_speed``, or the pivot slips by more than ``pivot_slip``.
+3. **whack and lose contact**: the angle peaked above ``whack_fraction * theta*``, the ball was
+   farther than ``contact_gap`` from the cube for at least ``lost_time`` after the peak, and the
+   final angle is at least ``fall_back`` below the peak.
+5. **unlabelled**: none of the above (reported as such, never forced into a mode).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from problems.config import Config, load_config
+from problems.scene import Plant, Scene, build_scene, home_state
+
+FAILURE_MODES: dict[int, str] = {
+    0: "success",
+    1: "fast sliding past the edge",
+    2: "backing off first",
+    3: "whack, then contact lost",
+    4: "no motion",
+    5: "unlabelled failure",
+}
+
+
+@dataclass(frozen=True)
+class FailureRules:
+    """Thresholds of the failure-mode labels (see the module docstring)."""
+
+    pivot_slip: float = 0.03
+    still_angle: float = 0.05
+    still_shift: float = 0.01
+    tip_start: float = 0.05
+    back_off: float = 0.03
+    fast_speed: float = 0.5
+    whack_fraction: float = 0.5
+    contact_gap: float = 0.02
+    lost_time: float = 0.2
+    fall_back: float = 0.1
+
+
+@dataclass
+class Trajectory:
+    """What the plant did: times (N), states (N x nx), inputs (N-1 x nu) and ball-cube gaps (N)."""
+
+    times: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    ball_gap: np.ndarray
+
+
+def cube_geometry(scene: Scene, x: np.ndarray) -> dict[str, Any]:
+    """Far bottom corner, ball position in the cube frame and ball-cube distance at ``x``."""
+    data = mujoco.MjData(scene.model)
+    data.qpos[:] = x[: scene.nq]
+    mujoco.mj_kinematics(scene.model, data)
+    corners = data.site_xpos[scene.corner_sites]
+    far = corners[np.argmax(corners[:, 0])].copy()
+    cube = scene.body("cube")
+    rotation = data.xmat[cube].reshape(3, 3)
+    ball_world = data.xpos[scene.body("ball")]
+    ball_local = rotation.T @ (ball_world - data.xpos[cube])
+    gap = mujoco.mj_geomDistance(scene.model, data, scene.geom("ball"), scene.geom("cube"),
+                                 10.0, None)
+    return {"far_corner": far, "ball_local": ball_local, "ball_gap": float(gap)}
+
+
+def label_failure_mode(trajectory: Trajectory, scene: Scene, target_angle: float,
+                       success_tolerance: float,
+                       rules: FailureRules | None = None) -> tuple[int, str]:
+    """The failure mode (0 = success) of a closed-loop trajectory, with the rule that fired."""
+    rules = rules or FailureRules()
+    states = trajectory.states
+    angles = np.array([scene.cube_angle(x) for x in states])
+    geometry = [cube_geometry(scene, x) for x in states]
+    far_x = np.array([g["far_corner"][0] for g in geometry])
+    slip = float(np.max(np.abs(far_x - far_x[0])))
+    error = abs(angles[-1] - target_angle)
+    if error <= success_tolerance and slip < rules.pivot_slip:
+        return 0, f"|theta - theta*| = {error:.3f} rad at the end, pivot slip {slip:.3f} m"
+    centre = states[:, scene.cube_pose_indices[0]]
+    if np.max(np.abs(angles)) < rules.still_angle and \
+            np.max(np.abs(centre - centre[0])) < rules.still_shift:
+        return 4, f"max |theta| {np.max(np.abs(angles)):.3f} rad, cube barely moved"
+    ball_x = states[:, scene.ball_position_indices[0]]
+    tipped = np.flatnonzero(angles > rules.tip_start)
+    before = slice(0, int(tipped[0]) if tipped.size else len(states))
+    retreat = float(ball_x[0] - np.min(ball_x[before]))
+    if retreat > rules.back_off:
+        return 2, f"ball backed off {retreat:.3f} m before the cube tipped"
+    half = scene.l / 2
+    nq = scene.nq
+    ball_velocity = states[:, nq + scene.ball_position_indices - (scene.nq - scene.nv)]
+    speed = np.linalg.norm(ball_velocity, axis=1)
+    above = np.array([g["ball_local"][2] > half for g in geometry])
+    if np.any(above & (speed > rules.fast_speed)) or slip >= rules.pivot_slip:
+        return 1, (f"ball over the top edge at up to {speed[above].max(initial=0):.2f} m/s"
+                   if np.any(above) else f"pivot slipped {slip:.3f} m")
+    peak = int(np.argmax(angles))
+    if angles[peak] > rules.whack_fraction * target_angle and \
+            angles[-1] < angles[peak] - rules.fall_back:
+        gaps = np.array([g["ball_gap"] for g in geometry])[peak:]
+        dt = float(np.median(np.diff(trajectory.times))) if len(states) > 1 else 0.0
+        away = float(np.sum(gaps > rules.contact_gap) * dt)
+        if away >= rules.lost_time:
+            return 3, (f"peak {angles[peak]:.2f} rad, contact lost {away:.2f} s, "
+                       f"fell back to {angles[-1]:.2f} rad")
+    return 5, f"final error {error:.3f} rad; no rule matched"
+
+
+@dataclass
+class StepRecord:
+    """One control step of a closed-loop run."""
+
+    time: float
+    state: np.ndarray
+    input: np.ndarray
+    lcs_time: float
+    solve_time: float
+    ok: bool
+    nan_count: int
+    info: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class ClosedLoopOutcome:
+    """The summary of a run."""
+
+    success: bool
+    angle_error: float
+    final_angle: float
+    failure_mode: int
+    failure_reason: str
+    median_step_time: float
+    p95_step_time: float
+    median_lcs_time: float
+    median_solve_time: float
+    nan_count: int
+    fallback_count: int
+    steps: int
+
+    @property
+    def failure_label(self) -> str:
+        return FAILURE_MODES[self.failure_mode]
+
+
+Policy = Callable[[np.ndarray, float], tuple[np.ndarray, dict[str, Any]]]
+"""``policy(x, t) -> (u, info)``; ``info`` may carry ``lcs_time``, ``solve_time``, ``ok``,
+``nan_count`` and scalar diagnostics."""
+
+
+def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0,
+             x0: np.ndarray | None = None, plant_scene: Scene | None = None,
+             progress: Callable[[int, int], None] | None = None
+             ) -> tuple[Trajectory, list[StepRecord]]:
+    """Run ``policy`` on the MuJoCo plant for ``duration`` seconds, replanning every ``dt``.
+
+    A policy that returns a non-finite input, or raises, is a failed step: the last safe input
+    is held instead and the step is counted (``ok = False``).
+    """
+    cfg = config or load_config()
+    scene = plant_scene or build_scene(config=cfg)
+    plant = Plant(scene)
+    state = home_state(scene) if x0 is None else np.asarray(x0, dtype=float)
+    plant.reset(state)
+    dt = cfg.mpc.dt
+    steps = round(duration / dt)
+    if steps < 1 or abs(steps * dt - duration) > 1e-9:
+        raise ValueError(f"duration must be a positive multiple of dt = {dt}, got {duration}")
+    last_safe = np.zeros(scene.nu)
+    records: list[StepRecord] = []
+    states, inputs, gaps, times = [state], [], [cube_geometry(scene, state)["ball_gap"]], [0.0]
+    for k in range(steps):
+        t = k * dt
+        start = time.perf_counter()
+        try:
+            u, info = policy(state, t)
+            u = np.asarray(u, dtype=float)
+        except Exception as error:  # noqa: BLE001 - a crashing controller is a counted step
+            u, info = np.full(scene.nu, np.nan), {"error": str(error), "ok": False}
+        wall = time.perf_counter() - start
+        nan_count = int(info.get("nan_count", 0))
+        ok = bool(info.get("ok", True))
+        if u.shape != (scene.nu,) or not np.all(np.isfinite(u)):
+            nan_count += 1
+            ok = False
+            u = last_safe
+        else:
+            u = np.clip(u, -cfg.scene.force_limit, cfg.scene.force_limit)
+            if ok:
+                last_safe = u
+        lcs_time = float(info.get("lcs_time", 0.0))
+        solve_time = float(info.get("solve_time", wall - lcs_time))
+        scalars = {key: float(value) for key, value in info.items()
+                   if isinstance(value, int | float) and key not in
+                   ("lcs_time", "solve_time", "ok", "nan_count")}
+        scalars["wall_time"] = wall
+        records.append(StepRecord(t, state.copy(), u.copy(), lcs_time, solve_time, ok,
+                                  nan_count, scalars))
+        state = plant.step(u, dt)
+        states.append(state)
+        inputs.append(u)
+        gaps.append(cube_geometry(scene, state)["ball_gap"])
+        times.append((k + 1) * dt)
+        if progress is not None:
+            progress(k + 1, steps)
+    trajectory = Trajectory(np.array(times), np.array(states), np.array(inputs),
+                            np.array(gaps))
+    return trajectory, records
+
+
+def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
+              config: Config) -> ClosedLoopOutcome:
+    """Outcome metrics of a run (see the module docstring)."""
+    target = config.mpc.target_angle
+    mode, reason = label_failure_mode(trajectory, scene, target, config.mpc.success_tolerance)
+    final = scene.cube_angle(trajectory.states[-1])
+    walls = np.array([r.info.get("wall_time", r.lcs_time + r.solve_time) for r in records])
+    return ClosedLoopOutcome(
+        success=mode == 0,
+        angle_error=abs(final - target),
+        final_angle=final,
+        failure_mode=mode,
+        failure_reason=reason,
+        median_step_time=float(np.median(walls)),
+        p95_step_time=float(np.percentile(walls, 95)),
+        median_lcs_time=float(np.median([r.lcs_time for r in records])),
+        median_solve_time=float(np.median([r.solve_time for r in records])),
+        nan_count=int(sum(r.nan_count for r in records)),
+        fallback_count=int(sum(not r.ok for r in records)),
+        steps=len(records),
+    )
+
+
+def angle_trajectory(trajectory: Trajectory, scene: Scene) -> np.ndarray:
+    """Cube angle at every recorded time (rad)."""
+    return np.array([scene.cube_angle(x) for x in trajectory.states])

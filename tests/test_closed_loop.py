@@ -1,0 +1,100 @@
+"""Closed-loop plumbing and the failure-mode labels on synthetic trajectories."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.closed_loop import (
+    Trajectory,
+    cube_geometry,
+    label_failure_mode,
+    simulate,
+    summarise,
+)
+from problems.config import load_config
+from problems.scene import build_scene, home_state, target_state
+
+CONFIG = load_config()
+SCENE = build_scene(config=CONFIG)
+TARGET = CONFIG.mpc.target_angle
+TOL = CONFIG.mpc.success_tolerance
+TIMES = np.arange(41) * CONFIG.mpc.dt
+
+
+def pivoted(angle: float, ball: tuple[float, float] | None = None,
+            ball_velocity: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """Cube pivoted about its far edge by ``angle``; ball on the face unless given."""
+    x = target_state(SCENE, angle)
+    if ball is not None:
+        x[3:5] = ball
+    x[8:10] = ball_velocity
+    return x
+
+
+def trajectory(states: list[np.ndarray]) -> Trajectory:
+    stacked = np.array(states)
+    gaps = np.array([cube_geometry(SCENE, x)["ball_gap"] for x in stacked])
+    return Trajectory(TIMES[: len(states)], stacked, np.zeros((len(states) - 1, 2)), gaps)
+
+
+def label(states: list[np.ndarray]) -> int:
+    return label_failure_mode(trajectory(states), SCENE, TARGET, TOL)[0]
+
+
+def test_success() -> None:
+    angles = np.minimum(np.linspace(0, 0.7, 41), TARGET)
+    assert label([pivoted(a) for a in angles]) == 0
+
+
+def test_no_motion() -> None:
+    assert label([home_state(SCENE)] * 41) == 4
+
+
+def test_backing_off_first() -> None:
+    states = []
+    for k in range(41):
+        x = pivoted(0.0) if k < 20 else pivoted(0.01 * (k - 20))
+        if k < 20:
+            x[3] -= 0.003 * k  # the ball retreats 6 cm before anything tips
+        states.append(x)
+    assert label(states) == 2
+
+
+def test_fast_sliding_past_the_edge() -> None:
+    states = [pivoted(0.004 * k) for k in range(30)]
+    top = SCENE.l + 0.1
+    states += [pivoted(0.12, ball=(0.0, top), ball_velocity=(1.5, 0.2)) for _ in range(11)]
+    assert label(states) == 1
+
+
+def test_whack_then_contact_lost() -> None:
+    up = [pivoted(a) for a in np.linspace(0, 0.4, 10)]
+    away = (-0.6, 0.2)
+    down = [pivoted(a, ball=away) for a in np.linspace(0.4, 0.05, 31)]
+    assert label(up + down) == 3
+
+
+def test_policy_returning_nan_falls_back_to_last_safe_input() -> None:
+    calls = {"n": 0}
+
+    def policy(x: np.ndarray, t: float) -> tuple[np.ndarray, dict]:
+        calls["n"] += 1
+        if calls["n"] % 2 == 0:
+            return np.array([np.nan, 1.0]), {}
+        if calls["n"] == 5:
+            raise RuntimeError("controller crashed")
+        return np.array([1.0, 0.0]), {"lcs_time": 1e-3, "solve_time": 2e-3}
+
+    traj, records = simulate(policy, CONFIG, duration=0.5)
+    outcome = summarise(traj, records, SCENE, CONFIG)
+    assert outcome.steps == 10
+    assert outcome.fallback_count == 6  # 5 NaN steps and one crash
+    assert outcome.nan_count == 6
+    assert all(np.array_equal(r.input, [1.0, 0.0]) for r in records)
+    assert np.all(np.isfinite(traj.states))
+
+
+def test_duration_must_be_a_multiple_of_dt() -> None:
+    with pytest.raises(ValueError, match="duration"):
+        simulate(lambda x, t: (np.zeros(2), {}), CONFIG, duration=0.07)
