@@ -1,0 +1,222 @@
+"""Direct KKT solvers of the equality-constrained QP families (``c3plus_qp``, ``c3_qp``).
+
+For ``min 1/2 x^T P x + q^T x`` s.t. ``A x = b`` (no inequalities, no finite bounds):
+
+* ``equilibrated_kkt``: the seed's 11-step equilibrated Schur-complement method
+  (:mod:`solvers.equilibrated`, with ``Q = P / 2`` and ``c = q``), float64 or float32.
+  ``settings.options`` may name a preset, ``{"ablation": "no_ruiz_schur"}`` (see
+  :data:`solvers.equilibrated.ABLATIONS`), and/or switch single steps,
+  ``{"ridge": 0.0, "projection": False}`` (field names of
+  :class:`solvers.equilibrated.EquilibrationSteps`); unknown names are an error.
+  ``{"diagnostics": False}`` skips the condition numbers (two SVDs, slower than the solve
+  itself), e.g. inside a controller loop; the violations are still reported.
+* ``kkt_ldl``: baseline, the full KKT system ``[[P, A^T], [A, 0]] [x; y] = [-q; b]`` solved
+  by LAPACK's symmetric-indefinite ``?sysv`` (Bunch-Kaufman ``L D L^T``), no scaling.
+* ``schur_plain``: baseline, the un-equilibrated Schur complement ``A P^-1 A^T`` with
+  Cholesky: every step of the method switched off (no scaling, no ridge, no projection, no
+  fallback); a failed Cholesky is a recorded failure.
+
+These are direct methods: ``iterations`` is ``None`` (not an iterative solver; a count of 1
+would make per-iteration aggregates meaningless next to ADMM and interior-point solvers).
+``build_time`` covers the conversion of the data (``Q = P / 2``, the dtype cast, assembling
+the KKT matrix); ``solve_time`` covers every factorisation and solve, because an ADMM
+controller refactorises each time ``rho`` changes. Condition numbers and violations are
+measured after the timed part, in float64 on the original data. ``y`` follows qpsolvers'
+sign: ``P x + q + A^T y = 0``.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from problems.instance import Problem
+from solvers.base import EQUALITY_QP_FAMILIES, Backend, Result, Settings, WarmStart
+from solvers.equilibrated import (
+    ABLATIONS,
+    DTYPES,
+    EquilibratedKKT,
+    EquilibrationSteps,
+    condition_number,
+    diagnose,
+    raw_schur,
+)
+from solvers.registry import register
+from solvers.timing import Stopwatch
+
+
+def steps_from_options(options: dict[str, Any]) -> EquilibrationSteps:
+    """The ablation switches named in ``settings.options`` (default: the full method).
+
+    ``options["ablation"]`` picks a preset of :data:`ABLATIONS`; other keys are field names of
+    :class:`EquilibrationSteps` and override it.
+    """
+    options = dict(options)
+    options.pop("diagnostics", None)
+    preset = options.pop("ablation", "full")
+    if preset not in ABLATIONS:
+        raise ValueError(f"unknown ablation {preset!r}; known: {', '.join(ABLATIONS)}")
+    return ABLATIONS[preset].with_options(options)
+
+
+def equality_only(problem: Problem) -> tuple[bool, str]:
+    """Whether ``problem`` has equalities only (no ``G``, no finite bound), with the reason."""
+    if problem.A is None or problem.n_eq == 0:
+        return False, "needs equality constraints A x = b"
+    if problem.G is not None and problem.n_ineq > 0:
+        return False, f"takes equality constraints only; problem has {problem.n_ineq} " \
+                      "inequality rows (G x <= h)"
+    if problem.n_bounded > 0:
+        return False, f"takes equality constraints only; problem has {problem.n_bounded} " \
+                      "variables with finite bounds"
+    return True, ""
+
+
+class _EqualityQPBackend(Backend):
+    """Shared family and structure checks."""
+
+    families = EQUALITY_QP_FAMILIES
+    package = ""  # numpy / scipy only
+    precisions = ("float64", "float32")
+
+    def accepts(self, problem: Problem) -> tuple[bool, str]:
+        ok, reason = super().accepts(problem)
+        if not ok:
+            return ok, reason
+        ok, reason = equality_only(problem)
+        return ok, (f"{self.name} {reason}" if reason else "")
+
+
+class EquilibratedKKTBackend(_EqualityQPBackend):
+    """The seed's equilibrated Schur-complement method, with ablation switches."""
+
+    name = "equilibrated_kkt"
+    description = ("seed's equilibrated Schur-complement KKT solve (row scaling, Ruiz on Q "
+                   "and S, ridge, projection); float32/float64; ablations via options")
+    steps_override: EquilibrationSteps | None = None
+
+    def steps(self, settings: Settings) -> EquilibrationSteps:
+        if self.steps_override is not None:
+            options = {k: v for k, v in settings.options.items() if k != "diagnostics"}
+            return self.steps_override.with_options(options) if options \
+                else self.steps_override
+        return steps_from_options(settings.options)
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        try:
+            steps = self.steps(settings)
+        except ValueError as error:
+            return Result.failed(self.name, problem.name, "invalid_input",
+                                 f"bad options: {error}")
+        watch = Stopwatch()
+        dtype = DTYPES[settings.precision]
+        assert problem.A is not None and problem.b is not None
+        with watch.lap("build"):
+            Q = (problem.P * 0.5).astype(dtype)
+            c = problem.q.astype(dtype)
+            A = problem.A.astype(dtype)
+            b = problem.b.astype(dtype)
+        try:
+            with watch.lap("factorize"):
+                kkt = EquilibratedKKT.factorize(Q, A, steps, settings.precision)
+            with watch.lap("substitute"):
+                x, y, x_unprojected = kkt.solve(c, b)
+        except (ValueError, np.linalg.LinAlgError) as error:
+            return Result.failed(self.name, problem.name, "error", str(error),
+                                 build_time=watch.get("build"),
+                                 solve_time=watch.get("factorize") + watch.get("substitute"))
+        x64 = x.astype(np.float64)
+        found = diagnose(kkt, problem.P * 0.5, problem.A, problem.b, x64,
+                         x_unprojected.astype(np.float64),
+                         conditioning=bool(settings.options.get("diagnostics", True)))
+        diagnostics = found.as_dict()
+        diagnostics["factorize_time"] = watch.get("factorize")
+        diagnostics["substitute_time"] = watch.get("substitute")
+        status = "solved" if kkt.fallbacks == 0 else \
+            f"solved (Cholesky of S needed {kkt.fallbacks} ridge increase(s))"
+        return Result(solver=self.name, problem=problem.name, found=True, status=status,
+                      x=x64, y=y.astype(np.float64), iterations=None,
+                      build_time=watch.get("build"),
+                      solve_time=watch.get("factorize") + watch.get("substitute"),
+                      diagnostics=diagnostics)
+
+
+class SchurPlainBackend(EquilibratedKKTBackend):
+    """Baseline: ``A P^-1 A^T`` with Cholesky, nothing else (every step switched off)."""
+
+    name = "schur_plain"
+    description = "un-equilibrated Schur complement with Cholesky (no scaling, ridge, projection)"
+    steps_override = EquilibrationSteps.none()
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        result = super().solve(problem, settings, warm_start)
+        # only the raw condition number is meaningful without equilibration
+        keep = ("cond_schur_raw", "violation_before_projection",
+                "mean_violation_before_projection", "factorize_time", "substitute_time")
+        result.diagnostics = {key: value for key, value in result.diagnostics.items()
+                              if key in keep}
+        if result.found:
+            result.status = "solved"
+        return result
+
+
+class KKTLDLBackend(_EqualityQPBackend):
+    """Baseline: the full KKT matrix, symmetric-indefinite LAPACK solve, no scaling."""
+
+    name = "kkt_ldl"
+    description = "full KKT [[P, A^T], [A, 0]] by symmetric-indefinite LDL^T (LAPACK sysv)"
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        watch = Stopwatch()
+        dtype = DTYPES[settings.precision]
+        assert problem.A is not None and problem.b is not None
+        n, m = problem.n, problem.n_eq
+        with watch.lap("build"):
+            K = np.zeros((n + m, n + m), dtype=dtype)
+            K[:n, :n] = problem.P
+            K[:n, n:] = problem.A.T
+            K[n:, :n] = problem.A
+            rhs = np.concatenate([-problem.q, problem.b]).astype(dtype)
+        start = time.perf_counter()
+        ill_conditioned = False
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", scipy.linalg.LinAlgWarning)
+                solution = scipy.linalg.solve(K, rhs, assume_a="sym", check_finite=False)
+            ill_conditioned = any(issubclass(w.category, scipy.linalg.LinAlgWarning)
+                                  for w in caught)
+        except (np.linalg.LinAlgError, ValueError) as error:
+            return Result.failed(self.name, problem.name, "error",
+                                 f"KKT matrix is singular: {error}",
+                                 build_time=watch.get("build"),
+                                 solve_time=time.perf_counter() - start)
+        solve_time = time.perf_counter() - start
+        x = solution[:n].astype(np.float64)
+        y = solution[n:].astype(np.float64)
+        residual = np.abs(problem.A @ x - problem.b)
+        conditioning = bool(settings.options.get("diagnostics", True))
+        diagnostics = {
+            "cond_kkt": condition_number(K) if conditioning else float("nan"),
+            "cond_schur_raw": (condition_number(raw_schur(problem.P * 0.5, problem.A))
+                               if conditioning else float("nan")),
+            "kkt_ill_conditioned": float(ill_conditioned),
+            "violation_before_projection": float(residual.max(initial=0.0)),
+            "mean_violation_before_projection": float(residual.mean()) if m else 0.0,
+        }
+        status = "solved" if not ill_conditioned else \
+            "solved (LAPACK warns: KKT matrix ill-conditioned)"
+        return Result(solver=self.name, problem=problem.name, found=True, status=status,
+                      x=x, y=y, iterations=None, build_time=watch.get("build"),
+                      solve_time=solve_time, diagnostics=diagnostics)
+
+
+register(EquilibratedKKTBackend())
+register(KKTLDLBackend())
+register(SchurPlainBackend())
