@@ -26,6 +26,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -33,6 +34,7 @@ import numpy as np
 
 from problems.config import Config, load_config
 from problems.scene import Plant, Scene, build_scene, home_state
+from solvers.timing import single_thread_blas
 
 FAILURE_MODES: dict[int, str] = {
     0: "success",
@@ -256,3 +258,194 @@ def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
 def angle_trajectory(trajectory: Trajectory, scene: Scene) -> np.ndarray:
     """Cube angle at every recorded time (rad)."""
     return np.array([scene.cube_angle(x) for x in trajectory.states])
+
+
+# --- controllers in the loop ------------------------------------------------------------------
+CONTROLLERS: tuple[str, ...] = ("c3", "c3plus", "c3plus-robust")
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """Which controller drives the plant, and how.
+
+    Attributes
+    ----------
+    controller
+        ``c3`` (MIQP projection), ``c3plus`` (closed-form projection) or ``c3plus-robust``
+        (``samples`` models with ``l ~ U[l_low, l_high]`` sharing their inputs).
+    qp_backend, projection
+        Registry names of the QP-step solver and of C3's MIQP projection.
+    rho_schedule
+        ``geometric`` (the seed's), ``adaptive`` or ``residual_balancing``.
+    admm_iterations
+        ADMM iterations per control step (seed: 10).
+    model_l
+        Cube side of the single model (seed: the shrunk 0.29).
+    samples, l_low, l_high
+        Robust variant: number of sampled models and the range of their sides.
+    weighting
+        Robust variant: weight samples by their one-step LCP prediction error on the
+        observations so far (seed section 3.3).
+    seed
+        Seed of the sampled sides.
+    """
+
+    controller: str = "c3plus"
+    qp_backend: str = "clarabel"
+    projection: str = "scip"
+    rho_schedule: str = "geometric"
+    admm_iterations: int = 10
+    model_l: float = 0.29
+    samples: int = 16
+    l_low: float = 0.27
+    l_high: float = 0.33
+    weighting: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"controller must be one of {CONTROLLERS}, got "
+                             f"{self.controller!r}")
+        if self.samples < 1:
+            raise ValueError(f"samples must be >= 1, got {self.samples}")
+        if not 0 < self.l_low <= self.l_high:
+            raise ValueError(f"need 0 < l_low <= l_high, got {self.l_low}, {self.l_high}")
+
+    def sample_sides(self) -> np.ndarray:
+        """The robust variant's model sides (seeded, sorted)."""
+        rng = np.random.default_rng(self.seed)
+        return np.sort(rng.uniform(self.l_low, self.l_high, self.samples))
+
+    def label(self) -> str:
+        extra = f"-n{self.samples}" if self.controller == "c3plus-robust" else \
+            f"-l{self.model_l:g}"
+        return f"{self.controller}-{self.qp_backend}-{self.rho_schedule}{extra}"
+
+
+def make_policy(spec: ControllerSpec, config: Config) -> Policy:
+    """A policy that linearises the controller's model(s) at the measured state and runs C3.
+
+    The LCS is built at ``(x, u_prev)`` every control step (``lcs_time``); the controller warm
+    starts from its previous step. The robust variant keeps the observed transitions
+    ``(x_t, u_t, x_{t+1})`` to weight its samples.
+    """
+    from problems.lcs import linearize
+    from problems.mpc import build_mpc
+    from solvers.c3 import C3Controller, C3Options, lcp_prediction_weights
+
+    robust = spec.controller == "c3plus-robust"
+    sides = spec.sample_sides() if robust else np.array([spec.model_l])
+    scenes = [build_scene(l=float(side), config=config) for side in sides]
+    mpc = build_mpc(scenes[0], config.mpc)
+    options = C3Options(variant="c3" if spec.controller == "c3" else "c3plus",
+                        qp_backend=spec.qp_backend, projection_backend=spec.projection,
+                        rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
+                        keep_iterates=False)
+    controller = C3Controller(options)
+    history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    previous: dict[str, np.ndarray] = {}
+
+    def policy(x: np.ndarray, t: float) -> tuple[np.ndarray, dict[str, Any]]:
+        u_prev = previous.get("u", np.zeros(scenes[0].nu))
+        if "x" in previous:
+            history.append((previous["x"], u_prev, x.copy()))
+        start = time.perf_counter()
+        models = [linearize(scene, x, u_prev, config.mpc.dt) for scene in scenes]
+        lcs_time = time.perf_counter() - start
+        start = time.perf_counter()
+        if robust:
+            weights = lcp_prediction_weights(models, history[-5:]) if spec.weighting \
+                else None
+            solution = controller.step_robust(models, weights, mpc, x)
+        else:
+            solution = controller.step(models[0], mpc, x)
+        solve_time = time.perf_counter() - start
+        previous["x"], previous["u"] = x.copy(), solution.u.copy()
+        trace = solution.trace.series() if solution.trace is not None else {}
+        info: dict[str, Any] = {"lcs_time": lcs_time, "solve_time": solve_time,
+                                "ok": solution.ok, "iterations": solution.iterations,
+                                "nan_count": 0 if solution.ok or np.all(np.isfinite(
+                                    solution.u_raw if solution.u_raw is not None else 0.0))
+                                else 1}
+        for key in ("consensus_residual", "complementarity_delta"):
+            values = trace.get(key)
+            if values:
+                info[key] = float(values[-1])
+        return solution.u, info
+
+    return policy
+
+
+def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
+                    duration: float = 2.0, progress: bool = False
+                    ) -> tuple[Trajectory, list[StepRecord], ClosedLoopOutcome]:
+    """Drive the true plant with the controller of ``spec`` for ``duration`` seconds."""
+    cfg = config or load_config()
+    plant_scene = build_scene(config=cfg)
+    policy = make_policy(spec, cfg)
+    bar = None
+    callback = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=round(duration / cfg.mpc.dt), desc=spec.label(), unit="step")
+
+        def callback(done: int, total: int) -> None:
+            bar.update(1)
+
+    try:
+        with single_thread_blas():  # small dense solves: one BLAS thread is fastest
+            trajectory, records = simulate(policy, cfg, duration, plant_scene=plant_scene,
+                                           progress=callback)
+    finally:
+        if bar is not None:
+            bar.close()
+    return trajectory, records, summarise(trajectory, records, plant_scene, cfg)
+
+
+def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scene
+                  ) -> Any:
+    """One row per control step: time, state, input, angle, timings, ok, NaNs, diagnostics."""
+    import pandas as pd
+
+    rows = []
+    for k, record in enumerate(records):
+        row: dict[str, Any] = {"step": k, "time": record.time,
+                               "cube_angle": scene.cube_angle(record.state),
+                               "ball_gap": float(trajectory.ball_gap[k]),
+                               "lcs_time": record.lcs_time, "solve_time": record.solve_time,
+                               "ok": record.ok, "nan_count": record.nan_count}
+        row.update({f"x{i}": float(v) for i, v in enumerate(record.state)})
+        row.update({f"u{i}": float(v) for i, v in enumerate(record.input)})
+        row.update(record.info)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def write_run(out_dir: str | Path, spec: ControllerSpec, trajectory: Trajectory,
+              records: list[StepRecord], outcome: ClosedLoopOutcome, scene: Scene) -> Path:
+    """Write ``steps.csv``/``steps.parquet`` and ``summary.json`` of a run into ``out_dir``."""
+    import json
+    from dataclasses import asdict
+
+    from problems.instance import atomic_write_bytes
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    frame = records_frame(trajectory, records, scene)
+    frame.to_parquet(out / "steps.parquet", index=False)
+    frame.to_csv(out / "steps.csv", index=False)
+    summary = {"spec": asdict(spec), "outcome": asdict(outcome),
+               "failure_label": outcome.failure_label,
+               "final_state": trajectory.states[-1].tolist()}
+    atomic_write_bytes(out / "summary.json",
+                       (json.dumps(summary, indent=2, sort_keys=True) + "\n").encode())
+    return out
+
+
+def render_run(trajectory: Trajectory, scene: Scene, path: str | Path, dt: float) -> Path:
+    """Animate a run as a GIF (raises ``RenderUnavailable`` without an off-screen GL)."""
+    from problems.scene import render_frames, save_gif
+
+    frames = render_frames(scene, trajectory.states, width=480, height=360)
+    return save_gif(frames, path, dt)

@@ -340,19 +340,16 @@ class Plant:
         return self.state()
 
 
-def render_frame(scene: Scene, x: np.ndarray, path: str | Path, width: int = 640,
-                 height: int = 480) -> Path:
-    """Render the scene at state ``x`` to a PNG file.
+def render_frames(scene: Scene, states: np.ndarray, width: int = 640,
+                  height: int = 480) -> list[np.ndarray]:
+    """Render every state of ``states`` (N x nx) to an RGB array, with one renderer.
 
     Needs an off-screen OpenGL backend (``MUJOCO_GL=egl``, chosen automatically when libEGL is
-    installed, or ``osmesa``); raises
-    :class:`RenderUnavailable` with the reason where none can create a context.
+    installed, or ``osmesa``); raises :class:`RenderUnavailable` with the reason where none can
+    create a context.
     """
-    x = scene.check_state(x)
+    checked = [scene.check_state(x, f"states[{i}]") for i, x in enumerate(np.atleast_2d(states))]
     data = mujoco.MjData(scene.model)
-    data.qpos[:] = x[: scene.nq]
-    data.qvel[:] = x[scene.nq:]
-    mujoco.mj_forward(scene.model, data)
     try:
         renderer = mujoco.Renderer(scene.model, height=height, width=width)
     except Exception as error:
@@ -360,16 +357,28 @@ def render_frame(scene: Scene, x: np.ndarray, path: str | Path, width: int = 640
         raise RenderUnavailable(
             f"no off-screen OpenGL context (MUJOCO_GL={backend}): {error}"
         ) from error
+    camera = mujoco.MjvCamera()
+    camera.lookat[:] = [0.05, 0.0, 0.15]
+    camera.distance = 1.4
+    camera.azimuth = 90.0
+    camera.elevation = -10.0
+    frames = []
     try:
-        camera = mujoco.MjvCamera()
-        camera.lookat[:] = [0.05, 0.0, 0.15]
-        camera.distance = 1.4
-        camera.azimuth = 90.0
-        camera.elevation = -10.0
-        renderer.update_scene(data, camera=camera)
-        pixels = renderer.render()
+        for x in checked:
+            data.qpos[:] = x[: scene.nq]
+            data.qvel[:] = x[scene.nq:]
+            mujoco.mj_forward(scene.model, data)
+            renderer.update_scene(data, camera=camera)
+            frames.append(renderer.render().copy())
     finally:
         renderer.close()
+    return frames
+
+
+def render_frame(scene: Scene, x: np.ndarray, path: str | Path, width: int = 640,
+                 height: int = 480) -> Path:
+    """Render the scene at state ``x`` to a PNG file (see :func:`render_frames`)."""
+    pixels = render_frames(scene, np.asarray(x, dtype=float)[None, :], width, height)[0]
     import matplotlib
 
     matplotlib.use("Agg")
@@ -378,4 +387,16 @@ def render_frame(scene: Scene, x: np.ndarray, path: str | Path, width: int = 640
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     matplotlib.image.imsave(out, pixels)
+    return out
+
+
+def save_gif(frames: list[np.ndarray], path: str | Path, frame_time: float) -> Path:
+    """Write RGB frames as an animated GIF, ``frame_time`` seconds per frame."""
+    from PIL import Image
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    images = [Image.fromarray(frame) for frame in frames]
+    images[0].save(out, save_all=True, append_images=images[1:],
+                   duration=max(1, round(1000 * frame_time)), loop=0)
     return out

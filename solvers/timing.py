@@ -11,6 +11,8 @@ import contextlib
 import time
 from collections.abc import Iterator
 
+import numpy  # noqa: F401 - load numpy's BLAS before limiting thread pools
+import scipy.linalg  # noqa: F401 - and SciPy's (its own OpenBLAS), see single_thread_blas
 from threadpoolctl import threadpool_limits
 
 
@@ -34,7 +36,12 @@ class Stopwatch:
 
 @contextlib.contextmanager
 def single_thread_blas() -> Iterator[None]:
-    """Pin BLAS/OpenMP thread pools to one thread inside the block."""
+    """Pin BLAS/OpenMP thread pools to one thread inside the block.
+
+    threadpoolctl limits only the libraries already loaded when the block is entered; SciPy
+    ships its own OpenBLAS, loaded with ``scipy.linalg``, so this module imports it first (a
+    late import left SciPy's Cholesky multi-threaded and 30x slower under load).
+    """
     with threadpool_limits(limits=1):
         yield
 

@@ -98,3 +98,34 @@ def test_policy_returning_nan_falls_back_to_last_safe_input() -> None:
 def test_duration_must_be_a_multiple_of_dt() -> None:
     with pytest.raises(ValueError, match="duration"):
         simulate(lambda x, t: (np.zeros(2), {}), CONFIG, duration=0.07)
+
+
+def test_short_closed_loop_is_deterministic() -> None:
+    from bench.closed_loop import ControllerSpec, run_closed_loop
+
+    spec = ControllerSpec(qp_backend="clarabel")
+    first, records, outcome = run_closed_loop(spec, CONFIG, duration=0.5)
+    second, _, _ = run_closed_loop(spec, CONFIG, duration=0.5)
+    assert np.array_equal(first.states, second.states)
+    assert outcome.steps == 10 and outcome.fallback_count == 0
+    assert all(r.lcs_time > 0 and r.solve_time > 0 for r in records)
+
+
+def test_robust_sides_are_seeded() -> None:
+    from bench.closed_loop import ControllerSpec
+
+    spec = ControllerSpec(controller="c3plus-robust", samples=16, seed=3)
+    sides = spec.sample_sides()
+    assert np.array_equal(sides, ControllerSpec(controller="c3plus-robust", samples=16,
+                                                seed=3).sample_sides())
+    assert sides.min() >= 0.27 and sides.max() <= 0.33 and len(sides) == 16
+
+
+def test_closed_loop_command_writes_records(tmp_path, capsys) -> None:
+    from bench.cli import main
+
+    out = tmp_path / "run"
+    assert main(["closed-loop", "--duration", "0.25", "--quiet", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "success" in text and "control step" in text
+    assert (out / "steps.csv").exists() and (out / "summary.json").exists()

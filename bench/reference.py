@@ -1,0 +1,328 @@
+"""Reference optima: which backend gives ``f*`` for which family, and the cache of them.
+
+:data:`REFERENCE_PLANS` is the one place in ``bench/`` that names solvers. Each family's
+reference backend solves every instance at ``high_accuracy``; a second backend cross-checks
+it and their relative disagreement
+
+    spread = |f*_ref - f*_check| / max(1, |f*_ref|)
+
+is recorded as the reference's own uncertainty (:mod:`bench.metrics` judges cost errors
+against ``max(tolerance, spread)``). A reference is accepted when its solver reports a
+solution whose relative primal residual and complementarity violation are at most
+:data:`ACCEPT_RESIDUAL`; when the reference backend fails but the check succeeds, the check
+becomes the reference (the ``reason`` column says so). When neither does, ``f*`` is NaN, every
+cost error of that instance is NaN and the report lists the reason.
+
+The cache ``results/<suite>/references.parquet`` holds one row per instance (with the
+reference's ``x, y, z, z_box`` for warm starts), keyed by the instance's content hash and the
+plan, so a regenerated instance or a changed plan is recomputed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from bench.store import SCHEMA_VERSION, SchemaVersionError, _check_version, atomic_write_bytes
+from problems.instance import Problem
+from solvers import registry
+from solvers.base import WarmStart, settings_for
+from solvers.residuals import cost_error, residuals
+
+
+@dataclass(frozen=True)
+class ReferencePlan:
+    """Reference backend of a family, its cross-check, and the profile they run at."""
+
+    solver: str
+    check: str | None
+    settings: str = "high_accuracy"
+
+
+# The only solver names in bench/: the reference of each family and its cross-check.
+REFERENCE_PLANS: dict[str, ReferencePlan] = {
+    "c3plus_qp": ReferencePlan("clarabel", "proxqp_dense"),
+    "c3_qp": ReferencePlan("clarabel", "proxqp_dense"),
+    "lcp": ReferencePlan("lemke", "clarabel"),
+    "projection": ReferencePlan("scip", None),
+    "mpcc": ReferencePlan("scip", None),
+}
+
+ACCEPT_RESIDUAL = 1e-6
+REFERENCE_COLUMNS: tuple[str, ...] = (
+    "instance", "family", "instance_hash", "planned_solver", "planned_check", "settings",
+    "available", "solver", "reason", "failure", "status", "objective", "primal_residual",
+    "complementarity_violation", "solve_time", "check_solver", "check_status",
+    "check_objective", "spread", "x", "y", "z", "z_box",
+)
+
+
+@dataclass
+class Reference:
+    """The reference optimum of one instance (see the module docstring).
+
+    Attributes
+    ----------
+    available
+        Whether ``objective`` is a usable ``f*``.
+    solver
+        Backend that gave ``f*`` (``""`` when none).
+    reason
+        Why there is no reference, or a note (fallback to the check).
+    spread
+        Relative disagreement with the cross-check (NaN when it could not be computed).
+    x, y, z, z_box
+        Its solution (``None`` when unknown), used to warm-start the next ADMM iterate.
+    """
+
+    instance: str
+    family: str
+    instance_hash: str
+    planned_solver: str
+    planned_check: str
+    settings: str
+    available: bool = False
+    solver: str = ""
+    reason: str = ""
+    failure: str = ""
+    status: str = ""
+    objective: float = float("nan")
+    primal_residual: float = float("nan")
+    complementarity_violation: float = float("nan")
+    solve_time: float = float("nan")
+    check_solver: str = ""
+    check_status: str = ""
+    check_objective: float = float("nan")
+    spread: float = float("nan")
+    x: np.ndarray | None = None
+    y: np.ndarray | None = None
+    z: np.ndarray | None = None
+    z_box: np.ndarray | None = None
+
+    def value(self) -> ReferenceValue:
+        """What a cell needs: ``f*``, its solver and spread."""
+        if not self.available:
+            return ReferenceValue("", float("nan"), float("nan"))
+        return ReferenceValue(self.solver, self.objective, self.spread)
+
+    def warm_start(self) -> WarmStart | None:
+        """The reference solution as a warm start (``None`` without one)."""
+        if not self.available or self.x is None:
+            return None
+        return WarmStart(x=self.x, y=self.y, z=self.z)
+
+
+@dataclass(frozen=True)
+class ReferenceValue:
+    """``f*`` of an instance as a cell sees it."""
+
+    solver: str
+    objective: float
+    spread: float
+
+
+def plan_for(family: str) -> ReferencePlan | None:
+    """The reference plan of a family (``None`` when it has none)."""
+    return REFERENCE_PLANS.get(family)
+
+
+def reference_solvers() -> tuple[str, ...]:
+    """Every backend named in :data:`REFERENCE_PLANS`."""
+    names = {p.solver for p in REFERENCE_PLANS.values()}
+    names |= {p.check for p in REFERENCE_PLANS.values() if p.check}
+    return tuple(sorted(names))
+
+
+def instance_hash(json_path: str | Path) -> str:
+    """SHA-256 of an instance's ``.json`` and ``.npz`` files (first 16 hex digits)."""
+    json_path = Path(json_path)
+    digest = hashlib.sha256()
+    for path in (json_path, json_path.with_suffix(".npz")):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _accept(problem: Problem, result: Any) -> tuple[bool, str, float, float]:
+    """Whether a solve is good enough to be a reference; reason; primal and compl. residual."""
+    if not result.found or result.x is None:
+        return False, f"{result.solver}: {result.failure or 'not found'}: {result.status}", \
+            float("nan"), float("nan")
+    figures = residuals(problem, result.x)
+    worst = max(figures.primal_relative, figures.complementarity)
+    if not worst <= ACCEPT_RESIDUAL:
+        return False, (f"{result.solver}: residual {worst:.2e} above {ACCEPT_RESIDUAL:.0e} "
+                       f"({result.status})"), figures.primal, figures.complementarity
+    return True, "", figures.primal, figures.complementarity
+
+
+def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
+                      time_limit: float = 60.0, preload: tuple[str, ...] = ()) -> Reference:
+    """Solve ``problem`` with the plan's reference and check backends.
+
+    ``plan`` is decided by the caller (``plan_for(problem.family)``), so workers need no
+    copy of the table. Runs through :func:`solvers.registry.solve` (isolated child, time
+    limit enforced), so a failing reference costs only this instance's ``f*``.
+    """
+    from bench.runner import import_plugins
+
+    import_plugins(preload)
+    ref = Reference(problem.name, problem.family, digest, plan.solver if plan else "",
+                    (plan.check or "") if plan else "", plan.settings if plan else "")
+    if plan is None:
+        ref.reason = f"no reference plan for family {problem.family!r}"
+        return ref
+    settings = settings_for(plan.settings, time_limit=time_limit)
+    main = registry.solve(plan.solver, problem, settings)
+    ok, reason, primal, compl = _accept(problem, main)
+    check = registry.solve(plan.check, problem, settings) if plan.check else None
+    check_ok = False
+    if check is not None:
+        check_ok, check_reason, _, _ = _accept(problem, check)
+        ref.check_solver = plan.check or ""
+        ref.check_status = check.status if check_ok else check_reason
+        if check_ok:
+            ref.check_objective = float(problem.objective(check.x))
+    chosen = main
+    if ok:
+        ref.reason = ""
+    elif check is not None and check_ok:
+        chosen = check
+        ref.reason = f"{reason}; using the cross-check {plan.check} instead"
+        ok, _, primal, compl = _accept(problem, check)
+    else:
+        ref.reason = reason
+        ref.failure = main.failure or "inaccurate"
+        ref.status = main.status
+        ref.solve_time = float(main.solve_time)
+        return ref
+    ref.available = True
+    ref.solver = chosen.solver
+    ref.status = chosen.status
+    ref.failure = ""
+    ref.solve_time = float(chosen.solve_time)
+    ref.objective = float(problem.objective(chosen.x))
+    ref.primal_residual, ref.complementarity_violation = primal, compl
+    if chosen is main and check_ok:
+        ref.spread = cost_error(ref.check_objective, ref.objective)
+    elif chosen is not main:
+        ref.spread = float("nan")
+    ref.x = np.asarray(chosen.x, dtype=float)
+    for name in ("y", "z", "z_box"):
+        value = getattr(chosen, name)
+        setattr(ref, name, None if value is None else np.asarray(value, dtype=float))
+    return ref
+
+
+# --- cache --------------------------------------------------------------------------------------
+def _to_list(value: np.ndarray | None) -> list[float] | None:
+    return None if value is None else [float(v) for v in np.asarray(value).ravel()]
+
+
+def save_references(path: Path, references: dict[str, Reference]) -> None:
+    """Write the cache atomically (rows sorted by instance; schema version in the metadata)."""
+    records = []
+    for name in sorted(references):
+        record = asdict(references[name])
+        for key in ("x", "y", "z", "z_box"):
+            record[key] = _to_list(getattr(references[name], key))
+        records.append(record)
+    frame = pd.DataFrame(records, columns=list(REFERENCE_COLUMNS))
+    list_type = pa.list_(pa.float64())
+    fields = []
+    for column in REFERENCE_COLUMNS:
+        if column in ("x", "y", "z", "z_box"):
+            fields.append(pa.field(column, list_type))
+        elif column == "available":
+            fields.append(pa.field(column, pa.bool_()))
+        elif column in ("objective", "primal_residual", "complementarity_violation",
+                        "solve_time", "check_objective", "spread"):
+            fields.append(pa.field(column, pa.float64()))
+        else:
+            fields.append(pa.field(column, pa.string()))
+    schema = pa.schema(fields, metadata={b"c3bench_schema": str(SCHEMA_VERSION).encode()})
+    table = pa.Table.from_pydict({c: frame[c].tolist() for c in REFERENCE_COLUMNS},
+                                 schema=schema)
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink)
+    atomic_write_bytes(path, sink.getvalue().to_pybytes())
+
+
+def load_references(path: str | Path) -> dict[str, Reference]:
+    """Read the cache (``{}`` when absent); reject another schema version."""
+    path = Path(path)
+    if not path.exists():
+        return {}
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowInvalid, OSError) as error:
+        raise SchemaVersionError(f"{path}: not a readable Parquet file ({error})") from error
+    raw = (table.schema.metadata or {}).get(b"c3bench_schema")
+    _check_version(int(raw) if raw is not None and raw.decode().isdigit() else raw, path)
+    out: dict[str, Reference] = {}
+    for record in table.to_pylist():
+        values = {key: record.get(key) for key in REFERENCE_COLUMNS}
+        for key in ("x", "y", "z", "z_box"):
+            values[key] = None if values[key] is None else np.asarray(values[key], dtype=float)
+        for key in ("objective", "primal_residual", "complementarity_violation", "solve_time",
+                    "check_objective", "spread"):
+            values[key] = float("nan") if values[key] is None else float(values[key])
+        for key in REFERENCE_COLUMNS:
+            if values[key] is None and key not in ("x", "y", "z", "z_box"):
+                values[key] = ""
+        out[str(values["instance"])] = Reference(**values)
+    return out
+
+
+def reusable(ref: Reference | None, digest: str, plan: ReferencePlan | None) -> bool:
+    """Whether a cached reference still holds: same instance content and plan, and it did not
+    fail only because a backend was unavailable (which a later install may fix)."""
+    if ref is None or plan is None:
+        return False
+    return (ref.instance_hash == digest and ref.planned_solver == plan.solver
+            and ref.planned_check == (plan.check or "") and ref.settings == plan.settings
+            and ref.failure != "unavailable")
+
+
+def reference_frame(references: dict[str, Reference]) -> pd.DataFrame:
+    """The cache without solution vectors, for reports."""
+    columns = [c for c in REFERENCE_COLUMNS if c not in ("x", "y", "z", "z_box")]
+    rows = [{c: getattr(references[name], c) for c in columns} for name in sorted(references)]
+    return pd.DataFrame(rows, columns=columns)
+
+
+@dataclass
+class ReferenceSummary:
+    """Per family: how many instances have ``f*`` and why the others do not."""
+
+    family: str
+    plan: str
+    instances: int
+    available: int
+    max_spread: float
+    reasons: list[str] = field(default_factory=list)
+
+
+def summarise(references: dict[str, Reference]) -> list[ReferenceSummary]:
+    """One :class:`ReferenceSummary` per family, sorted by family."""
+    by_family: dict[str, list[Reference]] = {}
+    for ref in references.values():
+        by_family.setdefault(ref.family, []).append(ref)
+    out = []
+    for family in sorted(by_family):
+        refs = sorted(by_family[family], key=lambda r: r.instance)
+        plan = plan_for(family)
+        label = "-" if plan is None else (plan.solver + (f" (checked by {plan.check})"
+                                                         if plan.check else ""))
+        spreads = [r.spread for r in refs if r.available and math.isfinite(r.spread)]
+        reasons = sorted({r.reason for r in refs if r.reason})
+        out.append(ReferenceSummary(family, label, len(refs), sum(r.available for r in refs),
+                                    max(spreads) if spreads else float("nan"), reasons))
+    return out

@@ -1,0 +1,285 @@
+"""Markdown report of a suite: ``results/<suite>/report.md`` and ``figures/*.png``.
+
+Layout (in the spirit of qpbenchmark's reports): header with the machine and versions; how
+success and the aggregates are defined; the solver table; the references; a success overview;
+one table per (family, settings, precision, start); failures; figures with one caption line
+each (or a note saying why a figure has no data). Tables are sorted and numbers formatted with
+fixed rules (:func:`fmt`) so the file diffs well between runs.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+import re
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from bench import store
+from bench.metrics import (
+    DUAL_FAMILIES,
+    TIME_SHIFT,
+    aggregate,
+    required_residuals,
+)
+from bench.plots import all_figures, ordered_settings
+from bench.reference import REFERENCE_PLANS, load_references, summarise
+
+# (header, aggregate column, format kind) of the per-family tables
+TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("solver", "solver", "text"),
+    ("cells", "cells", "int"),
+    ("success", "success_rate", "percent"),
+    ("time sgm (ms)", "time_sgm", "ms"),
+    ("time rel.", "time_rel", "rel"),
+    ("primal (rel.)", "primal_sgm", "sci"),
+    ("dual (rel.)", "dual_sgm", "sci"),
+    ("gap (rel.)", "gap_sgm", "sci"),
+    ("compl.", "complementarity_sgm", "sci"),
+    ("cost error", "cost_error_sgm", "sci"),
+    ("iters (median)", "iterations_median", "num"),
+    ("time/iter (us)", "time_per_iteration", "us"),
+    ("cond(S) raw", "cond_schur_raw_median", "sci"),
+    ("cond(S) eq.", "cond_schur_equilibrated_median", "sci"),
+)
+
+
+def fmt(value: Any, kind: str) -> str:
+    """Deterministic cell text: ``-`` for missing values; fixed formats per kind."""
+    if kind == "text":
+        return str(value).replace("|", "\\|").replace("\n", " ")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return "-"
+    if math.isnan(number):
+        return "-"
+    if math.isinf(number):
+        return "inf" if number > 0 else "-inf"
+    if kind == "int":
+        return str(int(number))
+    if kind == "percent":
+        return f"{100.0 * number:.1f}%"
+    if kind == "ms":
+        return f"{1e3 * number:.3g}"
+    if kind == "us":
+        return f"{1e6 * number:.3g}"
+    if kind == "rel":
+        return f"{number:.2f}" if 0.01 <= abs(number) < 100 else f"{number:.3g}"
+    if kind == "num":
+        return f"{number:.4g}"
+    return f"{number:.1e}"
+
+
+def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]],
+                   align: str | None = None) -> str:
+    """A Markdown table; ``align`` has one letter per column, ``l`` or ``r`` (default: first
+    column left, the others right)."""
+    align = align or "l" + "r" * (len(headers) - 1)
+    marks = {"l": ":---", "r": "---:"}
+    lines = ["| " + " | ".join(headers) + " |",
+             "|" + "|".join(marks[a] for a in align) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def family_table(summary: pd.DataFrame) -> str:
+    """The aggregate table of one (family, settings, precision, start) group."""
+    rows = [[fmt(record[column], kind) for _, column, kind in TABLE_COLUMNS]
+            for record in summary.sort_values("solver").to_dict("records")]
+    return markdown_table([header for header, _, _ in TABLE_COLUMNS], rows)
+
+
+def _header(info: dict[str, Any], frame: pd.DataFrame) -> list[str]:
+    packages = info.get("packages", {})
+    rows = [
+        ["run date (UTC)", info.get("date", "-")],
+        ["CPU", f"{info.get('cpu', '-')} ({info.get('cores', '-')} cores)"],
+        ["host", info.get("host", "-")],
+        ["platform", info.get("platform", "-")],
+        ["Python", info.get("python", "-")],
+        ["packages", ", ".join(f"{k} {v}" for k, v in sorted(packages.items())) or "-"],
+        ["BLAS threads", f"{info.get('blas_threads_timed', 1)} during timed solves "
+                         f"(pinned with threadpoolctl); library default "
+                         f"{info.get('blas_threads_default', '-')}"],
+        ["executor", f"Dask scheduler {info['scheduler']}" if info.get("scheduler")
+         else f"local process pool, {info.get('jobs', '-')} workers"],
+        ["timing", f"{info.get('repeats', '-')} timed repeats after 1 untimed warm-up, "
+                   f"median; time limit {info.get('time_limit', '-')} s per solve"],
+        ["cells stored", str(len(frame))],
+        ["hosts in rows", ", ".join(sorted(set(frame["host"]))) or "-"],
+    ]
+    return [markdown_table(["", ""], [[fmt(a, "text"), fmt(b, "text")] for a, b in rows],
+                           "ll")]
+
+
+def _method() -> str:
+    dual = ", ".join(f"`{f}`" for f in DUAL_FAMILIES)
+    families = sorted(set(REFERENCE_PLANS) | set(DUAL_FAMILIES))
+    checks = "; ".join(f"`{f}`: " + ", ".join(required_residuals(f)) for f in families)
+    return (
+        "A cell is one (instance, solver, settings, precision, start). **Success** = the "
+        "solver found a solution *and* every residual its family requires is at most the "
+        f"profile's tolerance ({checks}); *relative* residuals are r / max(1, size of their "
+        "terms) (solvers.residuals: the instances have gradients up to 4e5); duals are "
+        f"checked only for {dual} (projection and mpcc are mixed-integer programs without a "
+        "dual certificate); and, where a reference optimum f* exists, the cost error "
+        "|f - f*| / max(1, |f*|) is at most max(tolerance, reference spread). The solver's "
+        "own status is never enough.\n\n"
+        f"**Aggregates**: solve time is the shifted geometric mean exp(mean(log(t + s))) - s "
+        f"with shift s = {TIME_SHIFT:g} s ({TIME_SHIFT * 1e3:g} ms), failures counted at the "
+        "time limit; *time rel.* divides by the best solver of the same table. Residual "
+        "columns are geometric means of max(residual, tolerance) over the cells where the "
+        "residual is finite (primal, dual, gap: relative). Iterations and time per iteration "
+        "are medians over successful cells; cond(S) columns are medians.\n"
+    )
+
+
+def _solver_table(info: dict[str, Any], frame: pd.DataFrame) -> str:
+    table = info.get("solver_table")
+    if not table:
+        from solvers import registry
+
+        table = [{"name": r.name, "available": r.available, "reason": r.reason,
+                  "version": r.version, "families": list(r.families),
+                  "precisions": list(r.precisions)} for r in registry.available()]
+    counts = frame.groupby("solver").size().to_dict()
+    rows = []
+    for entry in sorted(table, key=lambda e: e["name"]):
+        rows.append([fmt(entry["name"], "text"), fmt(entry["version"], "text"),
+                     "yes" if entry["available"] else "no",
+                     fmt(entry["reason"] or "-", "text"),
+                     ", ".join(entry["families"]) or "-", ", ".join(entry["precisions"]),
+                     str(counts.get(entry["name"], 0))])
+    return markdown_table(["solver", "version", "available", "reason", "families",
+                           "precisions", "cells"], rows, "llllllr")
+
+
+def _reference_table(paths: store.SuitePaths) -> str:
+    references = load_references(paths.references)
+    if not references:
+        return "No references were computed (no cost errors: success by residuals only).\n"
+    rows = []
+    for entry in summarise(references):
+        rows.append([entry.family, fmt(entry.plan, "text"), str(entry.instances),
+                     str(entry.available), fmt(entry.max_spread, "sci"),
+                     fmt("; ".join(entry.reasons) or "-", "text")])
+    text = markdown_table(["family", "reference", "instances", "with f*", "max spread",
+                           "why not / notes"], rows, "llrrrl")
+    return text + ("\nSpread: |f*_ref - f*_check| / max(1, |f*|) between the reference and its "
+                   "cross-check (high_accuracy). Instances without f* have NaN cost errors "
+                   "and are judged by residuals alone.\n")
+
+
+def _overview(summary: pd.DataFrame) -> str:
+    base = summary[(summary["precision"] == "float64") & (summary["start"] == "cold")]
+    if base.empty:
+        return "No cold-start float64 cells.\n"
+    profiles = ordered_settings(base)
+    parts = []
+    for family in sorted(set(base["family"])):
+        rows = []
+        mine = base[base["family"] == family]
+        for solver in sorted(set(mine["solver"])):
+            row = [solver]
+            for profile in profiles:
+                hit = mine[(mine["solver"] == solver) & (mine["settings"] == profile)]
+                row.append(fmt(hit["success_rate"].iloc[0], "percent") if len(hit) else "-")
+            rows.append(row)
+        parts.append(f"**{family}** (success rate, cold start, float64)\n\n"
+                     + markdown_table(["solver", *profiles], rows))
+    return "\n".join(parts)
+
+
+def reason_kind(verdict: str) -> list[str]:
+    """The kinds of failure in a verdict, without numbers: ``dual_residual > tol`` for each
+    residual over tolerance, ``X unavailable``, or the failure category of an unsolved cell."""
+    parts = [part.strip() for part in str(verdict).split(";") if part.strip()]
+    residual = re.compile(r"^(\w+) (\S+ > \S+|unavailable)$")
+    if parts and all(residual.match(part) for part in parts):
+        kinds = []
+        for part in parts:
+            name, rest = residual.match(part).groups()  # type: ignore[union-attr]
+            kinds.append(f"{name} unavailable" if rest == "unavailable" else f"{name} > tol")
+        return kinds
+    return [str(verdict).split(":")[0].strip()[:60] or "unknown"]
+
+
+def _failures(frame: pd.DataFrame) -> str:
+    failed = frame[~frame["success"]]
+    if failed.empty:
+        return "Every cell succeeded.\n"
+    rows = []
+    for (family, solver), group in failed.groupby(["family", "solver"], sort=True):
+        kinds = pd.Series([k for v in group["verdict"] for k in reason_kind(v)], dtype=str)
+        counts = sorted(kinds.value_counts().items(), key=lambda item: (-item[1], item[0]))
+        categories = pd.Series(np.where(group["failure"] != "", group["failure"],
+                                        np.where(group["found"], "inaccurate", "not found")),
+                               dtype=str).value_counts()
+        rows.append([family, solver, str(len(group)),
+                     ", ".join(f"{k} ({v})" for k, v in sorted(categories.items())),
+                     fmt(", ".join(f"{k} ({v})" for k, v in counts[:4]), "text")])
+    return (markdown_table(["family", "solver", "failed cells", "categories", "reasons (cells)"],
+                           rows, "llrll")
+            + "\nCategories: the registry's failure category; *inaccurate*: the solver "
+              "claimed a solution but the residual check failed; *not found*: it returned "
+              "without claiming one. The per-cell reason is the `verdict` column of the "
+              "results.\n")
+
+
+def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
+                 figures: bool = True) -> str:
+    """The report's Markdown text (draws the figures into ``paths.figures``)."""
+    frame = store.read_results(paths.root) if frame is None else frame
+    info = json.loads(paths.run_info.read_text()) if paths.run_info.exists() else {}
+    summary = aggregate(frame)
+    suite = paths.root.name
+    out = [f"# c3bench report: suite `{suite}`\n",
+           f"Generated {dt.datetime.now(dt.UTC).strftime('%Y-%m-%d')} from "
+           f"`{paths.parquet.name}` (schema version {store.SCHEMA_VERSION}).\n",
+           "## Machine and versions\n", *_header(info, frame),
+           "## Method\n", _method(),
+           "## Solvers\n", _solver_table(info, frame),
+           "## Reference optima\n", _reference_table(paths),
+           "## Success overview\n", _overview(summary),
+           "## Results by family and settings\n"]
+    if summary.empty:
+        out.append("No results.\n")
+    for (family, profile, precision, start), group in summary.groupby(
+            ["family", "settings", "precision", "start"], sort=True):
+        tolerance = frame.loc[(frame["family"] == family) & (frame["settings"] == profile),
+                              "tolerance"].iloc[0]
+        out.append(f"### {family} / {profile} / {precision} / {start}\n")
+        out.append(f"Tolerance {tolerance:.0e}; residuals checked: "
+                   f"{', '.join(required_residuals(family))}.\n")
+        out.append(family_table(group))
+    out += ["## Failures\n", _failures(frame)]
+    out.append("## Figures\n")
+    if figures:
+        for old in sorted(paths.figures.glob("*.png")) if paths.figures.is_dir() else []:
+            old.unlink()
+        for number, figure in enumerate(all_figures(frame, paths), start=1):
+            out.append(f"### Figure {number}: {figure.title}\n")
+            if figure.path is None:
+                out.append(f"*No figure: {figure.note}.*\n")
+            else:
+                out.append(f"![{figure.title}]({figure.path})\n")
+                out.append(f"*Figure {number}: {figure.caption}*\n")
+    out += ["## Results schema\n", store.schema_markdown()]
+    return "\n".join(out)
+
+
+def write_report(suite: str, results_dir: str | Path = "results",
+                 figures: bool = True) -> Path:
+    """Write ``results/<suite>/report.md`` (+ figures and ``summary.csv``); return its path."""
+    paths = store.SuitePaths.of(results_dir, suite)
+    frame = store.read_results(paths.root)
+    text = build_report(paths, frame, figures=figures)
+    store.atomic_write_bytes(paths.report, text.encode())
+    store.atomic_write_bytes(paths.summary, aggregate(frame).to_csv(index=False).encode())
+    return paths.report

@@ -1,0 +1,218 @@
+"""Registry adapters ``c3plus_admm`` and ``c3_admm``: the C3 / C3+ controller as an mpcc solver.
+
+A thin layer over :mod:`solvers.c3`. From an ``mpcc`` instance (built by
+:func:`problems.families.mpcc`) the adapter recovers
+
+* the LCS (``problem.lcs``) and ``x0`` (``problem.data["x0"]``);
+* the MPC cost from ``P``, ``q``: ``Q = P_{x_0 x_0} / 2``, ``R = P_{u_0 u_0} / 2``,
+  ``Q_f = P_{x_T x_T} / 2`` and ``x*`` the least-squares solution of ``2 Q_f x* = -q_{x_T}``
+  (any ``x*`` component with zero weight is irrelevant to the cost); the force limit from
+  ``ub`` on ``u``. The instance is then rebuilt with :func:`problems.families.mpcc` and must
+  match ``P``, ``q``, ``A``, ``b``, the bounds and the offset (else the backend declines: the
+  instance was not an mpcc of this form);
+
+and runs :func:`solvers.c3.solve_c3` from a cold start (or from ``warm_start.x``, an mpcc
+vector whose horizon steps become the initial ``delta``; ``w = 0``).
+
+Settings: ``settings.options`` keys that are :class:`solvers.c3.C3Options` fields
+(``qp_backend``, ``admm_iterations``, ``rho_schedule``, ``rho0``, ``stopping``, ...) are passed
+on; ``settings.max_iterations`` caps the ADMM iterations; the inner QP (and projection) run
+with the outer profile, tolerance, time limit and precision. ``options["solution"]`` picks the
+returned point:
+
+* ``"delta"`` (default): the projected trajectory ``delta`` (complementary by construction)
+  closed with the QP's terminal state ``x_T``; its dynamics residual is of the order of the
+  consensus residual;
+* ``"z"``: the last QP solution (dynamics exact, complementarity violated), with ``eta`` the
+  LCS gap for C3;
+* ``"rollout"``: the LCS simulated from ``x0`` under ``delta``'s inputs (clipped to the force
+  limit) with Lemke's method: dynamics and complementarity hold, so its cost is an upper
+  bound of the mpcc optimum.
+
+``found`` is true when the run completed and the returned point's complementarity violation
+and the final consensus residual ``||z - delta||_inf`` are at most ``settings.tolerance``.
+``objective`` is the mpcc cost of the returned point. ``trace`` is the controller's
+per-iteration record (:meth:`solvers.c3.C3Trace.series`); ``diagnostics`` add the costs of the
+other two candidate points.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields
+from typing import Any
+
+import numpy as np
+
+from problems import families
+from problems.instance import Problem
+from problems.mpc import MPC, HorizonLayout
+from solvers.base import Backend, Result, Settings, WarmStart
+from solvers.c3 import C3Options, C3Solution, rollout_vector, solve_c3, to_full_steps
+from solvers.registry import register
+from solvers.residuals import complementarity_violation
+from solvers.timing import Stopwatch
+
+SOLUTION_POINTS: tuple[str, ...] = ("delta", "z", "rollout")
+_NOT_PASSED = {"variant", "qp_settings", "projection_settings"}
+
+
+def mpc_from_mpcc(problem: Problem) -> MPC:
+    """Recover the MPC of an ``mpcc`` instance (module docstring); ``ValueError`` when the
+    instance is not reproduced by :func:`problems.families.mpcc` from it."""
+    if problem.lcs is None or "x0" not in problem.data or "layout" not in problem.meta:
+        raise ValueError("an mpcc instance needs lcs, data['x0'] and meta['layout']")
+    layout = HorizonLayout.from_json(problem.meta["layout"])
+    T = layout.horizon
+    sx, su, sT = layout.index(0, "x"), layout.index(0, "u"), layout.index(T, "x")
+    Q = problem.P[sx, sx] / 2.0
+    R = problem.P[su, su] / 2.0
+    Q_f = problem.P[sT, sT] / 2.0
+    x_target = np.linalg.lstsq(2.0 * Q_f, -problem.q[sT], rcond=None)[0]
+    limits = np.inf if problem.ub is None else problem.ub[su]
+    force_limit = float(np.max(limits))
+    mpc = MPC(Q=Q, R=R, Q_f=Q_f, x_target=x_target, horizon=T, dt=problem.lcs.dt,
+              force_limit=force_limit)
+    rebuilt = families.mpcc(problem.name, problem.lcs, mpc, problem.data["x0"])
+    scale = max(1.0, float(np.max(np.abs(problem.P))))
+    checks = {
+        "P": np.allclose(rebuilt.P, problem.P, rtol=1e-12, atol=1e-12 * scale),
+        "q": np.allclose(rebuilt.q, problem.q, rtol=1e-9, atol=1e-9 * scale),
+        "A": problem.A is not None and np.array_equal(rebuilt.A, problem.A),
+        "b": problem.b is not None and np.allclose(rebuilt.b, problem.b, rtol=1e-12,
+                                                   atol=1e-12),
+        "lb": problem.lb is not None and np.array_equal(rebuilt.lb, problem.lb),
+        "ub": problem.ub is not None and np.array_equal(rebuilt.ub, problem.ub),
+        "offset": math.isclose(rebuilt.objective_offset, problem.objective_offset,
+                               rel_tol=1e-9, abs_tol=1e-9 * scale),
+        "complementarity": problem.complementarity is not None and np.array_equal(
+            rebuilt.complementarity, problem.complementarity),
+    }
+    wrong = [name for name, ok in checks.items() if not ok]
+    if wrong:
+        raise ValueError(f"not an mpcc of problems.families.mpcc's form (mismatch in "
+                         f"{', '.join(wrong)})")
+    return mpc
+
+
+def options_for(variant: str, settings: Settings) -> tuple[C3Options, str]:
+    """``C3Options`` and the solution point from the settings (module docstring)."""
+    allowed = {f.name for f in fields(C3Options)} - _NOT_PASSED
+    chosen: dict[str, Any] = {k: v for k, v in settings.options.items() if k in allowed}
+    if "rho0" in chosen:
+        chosen["rho0"] = {str(k): float(v) for k, v in dict(chosen["rho0"]).items()}
+    if "rho_blocks" in chosen:
+        chosen["rho_blocks"] = tuple(chosen["rho_blocks"])
+    if settings.max_iterations is not None and "admm_iterations" not in chosen:
+        chosen["admm_iterations"] = int(settings.max_iterations)
+    inner = Settings(profile=settings.profile, tolerance=settings.tolerance,
+                     time_limit=settings.time_limit, precision=settings.precision)
+    point = str(settings.options.get("solution", "delta"))
+    if point not in SOLUTION_POINTS:
+        raise ValueError(f"options['solution'] must be one of {SOLUTION_POINTS}, got {point!r}")
+    return C3Options(variant=variant, qp_settings=inner, projection_settings=inner,
+                     **chosen), point
+
+
+def _points(problem: Problem, mpc: MPC, solution: C3Solution) -> dict[str, np.ndarray]:
+    """The candidate mpcc vectors of a finished run."""
+    lcs = problem.lcs
+    assert lcs is not None
+    layout = solution.layout
+    out: dict[str, np.ndarray] = {}
+    if solution.z_steps is None or solution.z_terminal is None:
+        return out
+    terminal = solution.z_terminal[0]
+    out["delta"] = np.concatenate([to_full_steps(solution.delta0, lcs, layout).ravel(),
+                                   terminal])
+    out["z"] = np.concatenate([to_full_steps(solution.z_steps[0], lcs, layout).ravel(),
+                               terminal])
+    inputs = solution.delta0[:, layout.index(0, "u")]
+    rolled = rollout_vector(lcs, mpc, problem.data["x0"], inputs)
+    if rolled is not None:
+        out["rollout"] = rolled
+    return out
+
+
+class C3Admm(Backend):
+    """C3 / C3+ consensus ADMM on the ``mpcc`` family (see the module docstring)."""
+
+    families = ("mpcc",)
+    package = ""
+    precisions = ("float64",)
+
+    def __init__(self, variant: str) -> None:
+        self.variant = variant
+        self.name = f"{variant}_admm"
+        projection = ("closed-form projection" if variant == "c3plus"
+                      else "MIQP projection per step")
+        self.description = (f"{'C3+' if variant == 'c3plus' else 'C3'} consensus ADMM "
+                            f"(QP step by a registry backend, {projection})")
+
+    def accepts(self, problem: Problem) -> tuple[bool, str]:
+        ok, reason = super().accepts(problem)
+        if not ok:
+            return ok, reason
+        if problem.lcs is None or "x0" not in problem.data or "layout" not in problem.meta:
+            return False, "the mpcc instance needs lcs, data['x0'] and meta['layout']"
+        return True, ""
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        watch = Stopwatch()
+        with watch.lap("build"):
+            try:
+                mpc = mpc_from_mpcc(problem)
+                options, point = options_for(self.variant, settings)
+            except (ValueError, TypeError) as error:
+                return Result.failed(self.name, problem.name, "unsupported", str(error))
+            lcs = problem.lcs
+            assert lcs is not None
+            delta0 = None
+            if warm_start is not None and warm_start.x is not None:
+                delta0 = self._warm_delta(problem, np.asarray(warm_start.x, dtype=float))
+        with watch.lap("solve"):
+            solution = solve_c3(lcs, mpc, problem.data["x0"], options, delta0)
+        points = _points(problem, mpc, solution)
+        diagnostics: dict[str, float] = {
+            f"objective_{name}": problem.objective(vector) for name, vector in points.items()}
+        trace = solution.trace
+        consensus = trace.consensus_residual_inf[-1] if trace.consensus_residual_inf \
+            else math.nan
+        diagnostics["consensus_residual_inf"] = float(consensus)
+        diagnostics["admm_iterations"] = float(solution.iterations)
+        for key, value in solution.rho.items():
+            diagnostics[f"rho_{key}_final"] = float(value)
+        common: dict[str, Any] = {"iterations": solution.iterations,
+                                  "build_time": watch.get("build"),
+                                  "solve_time": watch.get("solve"),
+                                  "trace": trace.series(), "diagnostics": diagnostics}
+        if not solution.ok or point not in points:
+            failure = "non_finite" if any(trace.non_finite) else "error"
+            status = solution.status if not solution.ok else \
+                f"{solution.status}; the {point} point is unavailable (Lemke failed)"
+            return Result.failed(self.name, problem.name, failure, status, **common)
+        x = points[point]
+        violation = complementarity_violation(problem, x)
+        found = violation <= settings.tolerance and consensus <= settings.tolerance
+        status = (f"{solution.status}; complementarity {violation:.3g}, consensus residual "
+                  f"{consensus:.3g} (tolerance {settings.tolerance:.3g})")
+        return Result(solver=self.name, problem=problem.name, found=found, status=status,
+                      x=x, objective=problem.objective(x), **common)
+
+    def _warm_delta(self, problem: Problem, x: np.ndarray) -> np.ndarray | None:
+        """Horizon steps of an mpcc vector in the QP layout (eta dropped for C3)."""
+        layout = HorizonLayout.from_json(problem.meta["layout"])
+        if x.shape != (layout.size,) or not np.all(np.isfinite(x)):
+            return None
+        steps = x[:layout.horizon * layout.step_size].reshape(layout.horizon,
+                                                              layout.step_size)
+        if self.variant == "c3":
+            keep = np.ones(layout.step_size, dtype=bool)
+            keep[layout.index(0, "eta")] = False
+            steps = steps[:, keep]
+        return steps.copy()
+
+
+register(C3Admm("c3plus"))
+register(C3Admm("c3"))
