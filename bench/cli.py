@@ -17,15 +17,24 @@ from pathlib import Path
 
 import pandas as pd
 
+from problems.suites import Capture
 
-def _capture_for(name: str):
-    """The ADMM-iterate source behind the QP and projection families."""
+CAPTURE_QP_BACKEND = "clarabel"
+"""QP solver of the controller runs whose iterates become suite instances (exact and
+deterministic; the seed's equilibrated method with its ridge is not exact)."""
+
+
+def _capture_for(name: str) -> Capture | None:
+    """The ADMM-iterate source behind the QP and projection families.
+
+    ``controller`` (default): real C3+ runs (the seed's schedule, 10 iterations) at each
+    sampled state; ``provisional``: the documented deterministic stand-in.
+    """
     if name == "provisional":
         return None
     from solvers.c3 import C3Options, controller_capture
 
-    variant = "c3plus"
-    return controller_capture(C3Options(variant=variant))
+    return controller_capture(C3Options(variant="c3plus", qp_backend=CAPTURE_QP_BACKEND))
 
 
 def cmd_problems_generate(args: argparse.Namespace) -> int:
@@ -151,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     generate.add_argument("--out", required=True, help="output directory")
     generate.add_argument("--config", default=None, help="task constants (TOML)")
     generate.add_argument("--capture", choices=("controller", "provisional"),
-                          default="provisional",
+                          default="controller",
                           help="source of the ADMM iterates behind the QP families")
     generate.add_argument("--quiet", action="store_true", help="no progress bar")
     generate.set_defaults(handler=cmd_problems_generate)
@@ -188,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
         if error.name != "bench.commands":
             raise
     else:
-        register_commands(sub)
+        register_commands(sub, capture=_capture_for("controller"))
     return parser
 
 

@@ -14,6 +14,7 @@ import importlib
 import multiprocessing
 import statistics
 import threading
+import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ BACKEND_MODULES: tuple[str, ...] = (
     "solvers.backends.qp",
     "solvers.backends.kkt",
     "solvers.backends.lcp",
+    "solvers.projection",
     "solvers.backends.miqp",
     "solvers.backends.nlp",
     "solvers.backends.c3",
@@ -151,23 +153,47 @@ def _finish(result: Result, problem: Problem) -> Result:
     return result
 
 
+SLOW_SOLVE_SECONDS = 1.0
+"""A solve slower than this is timed once after the warm-up: repeats add little accuracy."""
+
+Notify = Callable[[int], None]
+
+
 def _run_repeats(backend: Backend, problem: Problem, settings: Settings,
-                 warm_start: WarmStart | None, repeats: int, warmup: bool) -> Result:
-    """Warm-up (untimed) then ``repeats`` solves; times are the medians."""
+                 warm_start: WarmStart | None, repeats: int, warmup: bool,
+                 notify: Notify | None = None) -> Result:
+    """Warm-up (untimed) then ``repeats`` solves; times are the medians.
+
+    When the warm-up took longer than :data:`SLOW_SOLVE_SECONDS` one timed solve is made.
+    ``notify(n)`` is told, after the warm-up, how many timed solves follow (so a watcher can
+    give each its own time limit).
+    """
     with single_thread_blas():
         if warmup:
+            start = time.perf_counter()
             backend.solve(problem, settings, warm_start)
+            if time.perf_counter() - start > SLOW_SOLVE_SECONDS:
+                repeats = 1
+        if notify is not None:
+            notify(repeats)
         results = [backend.solve(problem, settings, warm_start) for _ in range(repeats)]
     result = results[-1]
     if repeats > 1:
         result.build_time = statistics.median(r.build_time for r in results)
         result.solve_time = statistics.median(r.solve_time for r in results)
+    result.diagnostics.setdefault("timed_repeats", float(repeats))
     return result
 
 
-def _child(connection: Any, call: Callable[[], Result]) -> None:
+Call = Callable[[Notify | None], Result]
+
+
+def _child(connection: Any, call: Call) -> None:
+    def notify(repeats: int) -> None:
+        connection.send(("warm", repeats))
+
     try:
-        outcome: tuple[str, Any] = ("ok", call())
+        outcome: tuple[str, Any] = ("ok", call(notify))
     except BaseException as error:  # noqa: BLE001 - recorded, never raised
         outcome = ("error", f"{type(error).__name__}: {error}\n{traceback.format_exc(limit=4)}")
     try:
@@ -176,9 +202,12 @@ def _child(connection: Any, call: Callable[[], Result]) -> None:
         connection.close()
 
 
-def _isolated(call: Callable[[], Result], time_limit: float, solver: str,
-              problem: str) -> Result:
-    """Run ``call`` in a forked child; kill it after ``time_limit`` seconds."""
+def _isolated(call: Call, time_limit: float, solver: str, problem: str) -> Result:
+    """Run ``call`` in a forked child; kill it when a solve overruns ``time_limit`` seconds.
+
+    The first solve (the warm-up) gets ``time_limit``; once the child reports it done, the
+    ``n`` timed solves get ``n * time_limit`` together.
+    """
     context = multiprocessing.get_context("fork")
     receiver, sender = context.Pipe(duplex=False)
     try:
@@ -186,16 +215,24 @@ def _isolated(call: Callable[[], Result], time_limit: float, solver: str,
         process.start()
     except AssertionError:
         # daemonic workers may not fork children: fall back to a watched thread
-        return _threaded(call, time_limit, solver, problem)
+        return _threaded(call, time_limit * 4, solver, problem)
     sender.close()
+    deadline = time.monotonic() + time_limit
+    kind, payload = "timeout", None
     try:
-        if receiver.poll(time_limit):
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not receiver.poll(remaining):
+                kind, payload = "timeout", None
+                break
             try:
                 kind, payload = receiver.recv()
             except EOFError:
                 kind, payload = "crash", None
-        else:
-            kind, payload = "timeout", None
+                break
+            if kind != "warm":
+                break
+            deadline = time.monotonic() + time_limit * int(payload)
     finally:
         receiver.close()
         if process.is_alive():
@@ -213,13 +250,13 @@ def _isolated(call: Callable[[], Result], time_limit: float, solver: str,
     return Result.failed(solver, problem, "error", str(payload).strip())
 
 
-def _threaded(call: Callable[[], Result], time_limit: float, solver: str,
-              problem: str) -> Result:
+def _threaded(call: Call, time_limit: float, solver: str, problem: str) -> Result:
+    """Run ``call`` in a watched thread; abandon it after ``time_limit`` seconds in all."""
     box: dict[str, Any] = {}
 
     def target() -> None:
         try:
-            box["result"] = call()
+            box["result"] = call(None)
         except BaseException as error:  # noqa: BLE001 - recorded, never raised
             box["error"] = f"{type(error).__name__}: {error}"
 
@@ -280,12 +317,12 @@ def solve(name: str, problem: Problem, settings: Settings | None = None,
     if reason:
         return Result.failed(name, problem.name, "invalid_input", reason)
 
-    def call() -> Result:
-        return _run_repeats(backend, problem, settings, warm_start, repeats, warmup)
+    def call(notify: Notify | None) -> Result:
+        return _run_repeats(backend, problem, settings, warm_start, repeats, warmup, notify)
 
-    budget = settings.time_limit * (repeats + (1 if warmup else 0))
     if isolate:
-        result = _isolated(call, budget, name, problem.name)
+        result = _isolated(call, settings.time_limit, name, problem.name)
     else:
+        budget = settings.time_limit * (repeats + (1 if warmup else 0))
         result = _threaded(call, budget, name, problem.name)
     return _finish(result, problem)
