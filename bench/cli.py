@@ -147,6 +147,34 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
+    from bench.closed_loop_suite import CLOSED_LOOP_SUITES, RESULTS_DIR, run_cases, write_report
+
+    if args.suite not in CLOSED_LOOP_SUITES:
+        print(f"error: unknown closed-loop suite {args.suite!r}; known: "
+              f"{', '.join(CLOSED_LOOP_SUITES)}", file=sys.stderr)
+        return 2
+    directory = Path(args.results) if args.results else RESULTS_DIR / args.suite
+    run = run_cases(CLOSED_LOOP_SUITES[args.suite], directory, jobs=args.jobs,
+                    scheduler=args.scheduler, rerun=args.rerun, progress=not args.quiet)
+    report = write_report(run, f"suite `{args.suite}`", render=not args.no_render)
+    succeeded = sum(bool(row.get("success")) for row in run.rows)
+    print(f"{len(run.rows)} runs ({run.skipped} stored), {succeeded} succeeded; report: {report}")
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from bench.closed_loop_suite import RESULTS_DIR, run_cases, sweep_cases, write_report
+
+    cases = sweep_cases(args.dt, args.rho_schedule, args.q_box, args.model_l, args.qp_backend)
+    directory = Path(args.results) if args.results else RESULTS_DIR / "sweep"
+    run = run_cases(cases, directory, jobs=args.jobs, scheduler=args.scheduler,
+                    rerun=args.rerun, progress=not args.quiet)
+    report = write_report(run, "hyperparameter sweep", render=False)
+    print(f"{len(run.rows)} runs ({run.skipped} stored); report: {report}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="c3bench",
@@ -190,6 +218,26 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("--render", default=None, help="write an animated GIF here")
     loop.add_argument("--quiet", action="store_true", help="no progress bar")
     loop.set_defaults(handler=cmd_closed_loop)
+
+    loop_suite = sub.add_parser("closed-loop-suite",
+                                help="closed-loop runs: backends x controllers x seeds")
+    loop_suite.add_argument("--suite", default="quick", help="quick or full")
+    sweep = sub.add_parser("sweep", help="failure-mode map: dt x rho schedule x Q_box x l")
+    sweep.add_argument("--dt", type=float, nargs="+", default=[0.05, 0.1])
+    sweep.add_argument("--rho-schedule", nargs="+", default=["geometric", "adaptive"],
+                       choices=("geometric", "adaptive", "residual_balancing"))
+    sweep.add_argument("--q-box", type=float, nargs="+", default=[2e4, 2e5])
+    sweep.add_argument("--model-l", type=float, nargs="+", default=[0.29, 0.30])
+    sweep.add_argument("--qp-backend", default="clarabel")
+    for parser_ in (loop_suite, sweep):
+        parser_.add_argument("--jobs", type=int, default=2, help="local worker processes")
+        parser_.add_argument("--scheduler", default=None, help="Dask scheduler address")
+        parser_.add_argument("--rerun", action="store_true", help="run stored cases again")
+        parser_.add_argument("--results", default=None, help="output directory")
+        parser_.add_argument("--quiet", action="store_true", help="no progress bar")
+    loop_suite.add_argument("--no-render", action="store_true", help="skip the animation")
+    loop_suite.set_defaults(handler=cmd_closed_loop_suite)
+    sweep.set_defaults(handler=cmd_sweep)
 
     try:
         from bench.commands import register_commands

@@ -377,9 +377,13 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
 
 
 def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
-                    duration: float = 2.0, progress: bool = False
+                    duration: float = 2.0, progress: bool = False,
+                    x0: np.ndarray | None = None
                     ) -> tuple[Trajectory, list[StepRecord], ClosedLoopOutcome]:
-    """Drive the true plant with the controller of ``spec`` for ``duration`` seconds."""
+    """Drive the true plant with the controller of ``spec`` for ``duration`` seconds.
+
+    ``x0`` is the plant's initial state (default: :func:`problems.scene.home_state`).
+    """
     cfg = config or load_config()
     plant_scene = build_scene(config=cfg)
     policy = make_policy(spec, cfg)
@@ -395,8 +399,8 @@ def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
 
     try:
         with single_thread_blas():  # small dense solves: one BLAS thread is fastest
-            trajectory, records = simulate(policy, cfg, duration, plant_scene=plant_scene,
-                                           progress=callback)
+            trajectory, records = simulate(policy, cfg, duration, x0=x0,
+                                           plant_scene=plant_scene, progress=callback)
     finally:
         if bar is not None:
             bar.close()

@@ -1,0 +1,491 @@
+"""Closed-loop suites and the hyperparameter sweep, run through the benchmark's executors.
+
+A *case* is one closed-loop run: a controller (:class:`bench.closed_loop.ControllerSpec`), task
+constants changed from the defaults (``dt``, ``q_cube_pose``), a seed that jitters the ball's
+start (seed 0 is the nominal start) and a duration. Cases run in the runner's local process
+pool or on a Dask cluster (the same executors as ``c3bench run``); each finished case is
+written atomically to ``results/closed_loop/<suite>/cells/<case>/`` (``summary.json``,
+``steps.parquet``), so an interrupted suite resumes, and the rows are consolidated into
+``results.parquet`` / ``results.csv``.
+
+Suites (:data:`CLOSED_LOOP_SUITES`):
+
+* ``quick``: C3+ with each of four QP backends (the seed's setting: shrunk model ``l = 0.29``,
+  geometric rho, 10 ADMM iterations), the seed's ablations (true-size model ``l = 0.30``; the
+  adaptive and residual-balancing rho schedules) and the robust variant with 16 samples
+  (``l ~ U[0.27, 0.33]``, LCP-error weighting) with and without weighting;
+* ``full``: ``quick`` over seeds 0-2, plus C3 with its MIQP projection and more QP backends.
+
+The sweep (:func:`sweep_cases`) crosses ``dt`` x rho schedule x ``Q_box`` x model ``l`` for C3+
+and reports the failure-mode label of every combination as a grid.
+
+Schema of ``results.parquet`` (one row per case): ``case``, ``group``, ``controller``,
+``qp_backend``, ``projection``, ``rho_schedule``, ``model_l``, ``samples``, ``weighting``,
+``dt``, ``q_cube_pose``, ``seed``, ``duration``, ``success``, ``angle_error`` (rad, at the end),
+``final_angle`` (rad), ``failure_mode`` (0-5), ``failure_label``, ``failure_reason``,
+``median_step_time``, ``p95_step_time``, ``median_lcs_time``, ``median_solve_time`` (s),
+``nan_count``, ``fallback_count``, ``steps``, ``error`` (why a case produced no run, else '').
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from bench.closed_loop import (
+    ControllerSpec,
+    records_frame,
+    render_run,
+    run_closed_loop,
+)
+from problems.config import Config, load_config
+from problems.instance import atomic_write_bytes
+from problems.scene import RenderUnavailable, build_scene, home_state
+
+RESULTS_DIR = Path("results") / "closed_loop"
+
+
+@dataclass(frozen=True)
+class Case:
+    """One closed-loop run of a suite.
+
+    Attributes
+    ----------
+    name
+        File-safe unique name.
+    group
+        What the case belongs to in the report (``backends``, ``ablation``, ``robust``,
+        ``sweep``).
+    spec
+        The controller.
+    dt, q_cube_pose
+        Task constants replacing the defaults (``None``: keep).
+    seed
+        Jitter of the ball's start: seed 0 is the nominal start, others add ``U[-1, 1] cm``.
+    duration
+        Seconds simulated.
+    """
+
+    name: str
+    group: str
+    spec: ControllerSpec
+    dt: float | None = None
+    q_cube_pose: float | None = None
+    seed: int = 0
+    duration: float = 2.0
+
+    def config(self, base: Config) -> Config:
+        changes: dict[str, float] = {}
+        if self.dt is not None:
+            changes["dt"] = self.dt
+        if self.q_cube_pose is not None:
+            changes["q_cube_pose"] = self.q_cube_pose
+        return base.with_mpc(**changes) if changes else base
+
+    def initial_state(self, config: Config) -> np.ndarray:
+        x0 = home_state(build_scene(config=config))
+        if self.seed:
+            rng = np.random.default_rng(self.seed)
+            x0[3] += rng.uniform(-0.01, 0.01)
+            x0[4] += rng.uniform(-0.01, 0.01)
+        return x0
+
+
+def _c3plus(backend: str, **changes: Any) -> ControllerSpec:
+    return ControllerSpec(controller="c3plus", qp_backend=backend, **changes)
+
+
+QUICK_BACKENDS: tuple[str, ...] = ("clarabel", "osqp", "equilibrated_kkt",
+                                   "equilibrated_kkt_noridge")
+FULL_BACKENDS: tuple[str, ...] = (*QUICK_BACKENDS, "proxqp_sparse", "daqp", "kkt_ldl",
+                                  "casadi_hpipm")
+
+
+def _suite_cases(backends: Sequence[str], seeds: Sequence[int], with_c3: bool) -> list[Case]:
+    cases: list[Case] = []
+    for seed in seeds:
+        tag = f"-seed{seed}"
+        for backend in backends:
+            spec = _c3plus(backend)
+            cases.append(Case(f"{spec.label()}{tag}", "backends", spec, seed=seed))
+        for spec, group in (
+            (_c3plus("clarabel", model_l=0.30), "ablation"),
+            (_c3plus("clarabel", rho_schedule="adaptive"), "ablation"),
+            (_c3plus("clarabel", rho_schedule="residual_balancing"), "ablation"),
+            (ControllerSpec(controller="c3plus-robust", qp_backend="clarabel"), "robust"),
+            (ControllerSpec(controller="c3plus-robust", qp_backend="clarabel",
+                            weighting=False), "robust"),
+        ):
+            name = spec.label() + ("-uniform" if not spec.weighting else "") + tag
+            cases.append(Case(name, group, spec, seed=seed))
+        if with_c3:
+            for projection in ("gurobi", "scip"):
+                spec = ControllerSpec(controller="c3", qp_backend="clarabel",
+                                      projection=projection)
+                cases.append(Case(f"{spec.label()}-{projection}{tag}", "c3", spec, seed=seed))
+    return cases
+
+
+CLOSED_LOOP_SUITES: dict[str, list[Case]] = {
+    "quick": _suite_cases(QUICK_BACKENDS, seeds=(0,), with_c3=False),
+    "full": _suite_cases(FULL_BACKENDS, seeds=(0, 1, 2), with_c3=True),
+}
+
+
+def sweep_cases(dts: Sequence[float] = (0.05, 0.1),
+                schedules: Sequence[str] = ("geometric", "adaptive"),
+                q_boxes: Sequence[float] = (2e4, 2e5),
+                model_ls: Sequence[float] = (0.29, 0.30),
+                backend: str = "clarabel") -> list[Case]:
+    """C3+ over the grid ``dt x rho schedule x Q_box x model l`` (the seed's hand-drawn map)."""
+    cases = []
+    for dt, schedule, q_box, side in itertools.product(dts, schedules, q_boxes, model_ls):
+        spec = _c3plus(backend, rho_schedule=schedule, model_l=side)
+        name = f"sweep-dt{dt:g}-{schedule}-q{q_box:g}-l{side:g}"
+        cases.append(Case(name, "sweep", spec, dt=dt, q_cube_pose=q_box))
+    return cases
+
+
+def case_row(case: Case) -> dict[str, Any]:
+    """The identifying columns of a case."""
+    spec = case.spec
+    return {"case": case.name, "group": case.group, "controller": spec.controller,
+            "qp_backend": spec.qp_backend,
+            "projection": spec.projection if spec.controller == "c3" else "closed_form",
+            "rho_schedule": spec.rho_schedule,
+            "model_l": spec.model_l if spec.controller != "c3plus-robust" else float("nan"),
+            "samples": spec.samples if spec.controller == "c3plus-robust" else 1,
+            "weighting": spec.weighting if spec.controller == "c3plus-robust" else False,
+            "dt": case.dt, "q_cube_pose": case.q_cube_pose, "seed": case.seed,
+            "duration": case.duration}
+
+
+def run_case(case: Case, cell_dir: str) -> dict[str, Any]:
+    """Run one case and write its cell (``summary.json``, ``steps.parquet``) atomically.
+
+    A case whose controller cannot be built or crashes outside the control loop becomes a row
+    with ``error`` set; it never stops the suite.
+    """
+    base = load_config()
+    row = case_row(case)
+    config = case.config(base)
+    row["dt"] = config.mpc.dt
+    row["q_cube_pose"] = config.mpc.q_cube_pose
+    out = Path(cell_dir) / case.name
+    try:
+        trajectory, records, outcome = run_closed_loop(case.spec, config, case.duration,
+                                                       x0=case.initial_state(config))
+    except Exception as error:  # noqa: BLE001 - recorded as the case's row
+        row.update({"success": False, "error": f"{type(error).__name__}: {error}",
+                    "failure_mode": -1, "failure_label": "error"})
+        return row
+    out.mkdir(parents=True, exist_ok=True)
+    frame = records_frame(trajectory, records, build_scene(config=config))
+    frame["plant_time"] = trajectory.times[:-1]
+    temporary = out / ".steps.parquet.tmp"
+    frame.to_parquet(temporary, index=False)
+    temporary.replace(out / "steps.parquet")
+    final = pd.DataFrame({"time": trajectory.times, "cube_angle": [
+        build_scene(config=config).cube_angle(x) for x in trajectory.states]})
+    temporary = out / ".angles.parquet.tmp"
+    final.to_parquet(temporary, index=False)
+    temporary.replace(out / "angles.parquet")
+    row.update(asdict(outcome))
+    row["failure_label"] = outcome.failure_label
+    row["error"] = ""
+    np.save(out / "states.npy", trajectory.states)
+    atomic_write_bytes(out / "summary.json",
+                       (json.dumps(row, indent=2, sort_keys=True, default=float) + "\n").encode())
+    return row
+
+
+@dataclass
+class SuiteRun:
+    """Where a closed-loop suite lives and what it did."""
+
+    directory: Path
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    skipped: int = 0
+
+
+def _stored(cell_dir: Path, case: Case) -> dict[str, Any] | None:
+    path = cell_dir / case.name / "summary.json"
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError:
+        return None
+
+
+def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
+              scheduler: str | None = None, rerun: bool = False,
+              progress: bool = True) -> SuiteRun:
+    """Run cases (skipping stored ones unless ``rerun``) and consolidate ``results.parquet``."""
+    from bench.runner import DaskPool, LocalPool
+
+    directory = Path(directory)
+    cell_dir = directory / "cells"
+    cell_dir.mkdir(parents=True, exist_ok=True)
+    cases = list(cases)
+    names = [case.name for case in cases]
+    if len(set(names)) != len(names):
+        raise ValueError("case names must be unique")
+    run = SuiteRun(directory)
+    todo = []
+    for case in cases:
+        stored = None if rerun else _stored(cell_dir, case)
+        if stored is not None:
+            run.rows.append(stored)
+            run.skipped += 1
+        else:
+            todo.append(case)
+    pool: Any = DaskPool(scheduler) if scheduler else LocalPool(
+        jobs, log_path=directory / "solver_output.log")
+    watchdog = 1800.0
+    tasks = [(case.name, run_case, (case, str(cell_dir)), watchdog) for case in todo]
+    bar = None
+    if progress and tasks:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tasks), desc=f"closed loop {directory.name}", unit="run")
+    by_name = {case.name: case for case in todo}
+    try:
+        for result in pool.run(tasks):
+            if result.ok:
+                run.rows.append(result.value)
+            else:
+                row = case_row(by_name[result.key])
+                row.update({"success": False, "failure_mode": -1, "failure_label": "error",
+                            "error": result.reason})
+                run.rows.append(row)
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+        pool.close()
+    order = {name: i for i, name in enumerate(names)}
+    run.rows.sort(key=lambda row: order.get(row["case"], len(order)))
+    frame = pd.DataFrame(run.rows)
+    frame.to_parquet(directory / "results.parquet", index=False)
+    frame.to_csv(directory / "results.csv", index=False)
+    return run
+
+
+# --- report -------------------------------------------------------------------------------------
+def _fmt(value: Any, digits: int = 3) -> str:
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "-"
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def _table(frame: pd.DataFrame, columns: Sequence[str]) -> str:
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for _, row in frame.iterrows():
+        lines.append("| " + " | ".join(_fmt(row.get(c, "")) for c in columns) + " |")
+    return "\n".join(lines)
+
+
+def plot_error_bars(frame: pd.DataFrame, path: Path, target: float) -> Path:
+    """Cube angle error at the end per configuration, coloured by success."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(max(6.0, 0.55 * len(frame)), 4.2))
+    errors = frame["angle_error"].fillna(target).to_numpy(dtype=float)
+    colours = ["tab:green" if ok else "tab:red" for ok in frame["success"].fillna(False)]
+    axis.bar(range(len(frame)), errors, color=colours)
+    for index, (error, mode) in enumerate(zip(errors, frame["failure_mode"], strict=True)):
+        axis.text(index, error, f"m{int(mode)}" if mode == mode else "", ha="center",
+                  va="bottom", fontsize=7)
+    axis.axhline(load_config().mpc.success_tolerance, color="k", linestyle="--", linewidth=0.8,
+                 label="success tolerance")
+    axis.set_xticks(range(len(frame)))
+    axis.set_xticklabels(frame["case"], rotation=60, ha="right", fontsize=7)
+    axis.set_ylabel("|theta(2 s) - theta*| (rad)")
+    axis.set_title("Cube angle error after the run (green: success; mN: failure mode)")
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def plot_angles(directory: Path, frame: pd.DataFrame, path: Path, target: float) -> Path:
+    """Cube angle against time for every case."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(8, 4.5))
+    for name in frame["case"]:
+        angles_path = directory / "cells" / name / "angles.parquet"
+        if not angles_path.exists():
+            continue
+        angles = pd.read_parquet(angles_path)
+        axis.plot(angles["time"], angles["cube_angle"], linewidth=1.2, label=name)
+    axis.axhline(target, color="k", linestyle="--", linewidth=0.8, label="target")
+    axis.set_xlabel("time (s)")
+    axis.set_ylabel("cube angle theta (rad)")
+    axis.set_title("Cube angle trajectories")
+    axis.legend(fontsize=6, ncol=2)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def plot_step_times(directory: Path, frame: pd.DataFrame, path: Path) -> Path:
+    """Distribution of the control-step wall time per case (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data, labels = [], []
+    for name in frame["case"]:
+        steps_path = directory / "cells" / name / "steps.parquet"
+        if not steps_path.exists():
+            continue
+        steps = pd.read_parquet(steps_path)
+        data.append(1e3 * steps["wall_time"].to_numpy())
+        labels.append(name)
+    figure, axis = plt.subplots(figsize=(max(6.0, 0.55 * len(labels)), 4.2))
+    if data:
+        axis.boxplot(data, showfliers=True)
+        axis.set_xticks(range(1, len(labels) + 1))
+        axis.set_xticklabels(labels, rotation=60, ha="right", fontsize=7)
+    axis.set_yscale("log")
+    axis.axhline(60.0, color="tab:red", linestyle="--", linewidth=0.8,
+                 label="seed: 60 ms per step")
+    axis.axhline(50.0, color="k", linestyle=":", linewidth=0.8, label="control period 50 ms")
+    axis.set_ylabel("control-step wall time (ms)")
+    axis.set_title("Control-step time (LCS build + controller), one BLAS thread")
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
+    """``report.md`` and ``figures/*.png`` of a closed-loop suite or sweep."""
+    directory = run.directory
+    figures = directory / "figures"
+    figures.mkdir(parents=True, exist_ok=True)
+    frame = pd.DataFrame(run.rows)
+    config = load_config()
+    target = config.mpc.target_angle
+    lines = [f"# c3bench closed loop: {title}", "",
+             f"Plant: MuJoCo, true cube l = {config.scene.cube_side} m, target angle "
+             f"{target} rad, success when |theta - theta*| <= "
+             f"{config.mpc.success_tolerance} rad at the end and the pivot did not slip. "
+             "Control-step times are wall-clock on this machine (2 cores, one BLAS thread), "
+             "LCS build included; the seed reported 0.06 s per step (control period 0.05 s).",
+             ""]
+    columns = ["case", "success", "angle_error", "final_angle", "failure_mode",
+               "failure_label", "median_step_time", "p95_step_time", "median_lcs_time",
+               "fallback_count", "nan_count"]
+    shown = frame.copy()
+    for column in ("median_step_time", "p95_step_time", "median_lcs_time"):
+        if column in shown:
+            shown[column] = shown[column] * 1e3
+    lines += ["## Outcomes", "",
+              "Times in ms; angle error and final angle in rad; failure modes: 0 success, "
+              "1 fast sliding past the edge, 2 backing off first, 3 whack then contact lost, "
+              "4 no motion, 5 unlabelled, -1 the run itself failed (see `error`).", "",
+              _table(shown, [c for c in columns if c in shown]), ""]
+    errors = frame[frame.get("error", pd.Series([""] * len(frame))).fillna("") != ""] \
+        if "error" in frame else frame.iloc[0:0]
+    if len(errors):
+        lines += ["Runs that produced no trajectory:", "",
+                  _table(errors, ["case", "error"]), ""]
+    if "sweep" in set(frame.get("group", [])):
+        lines += ["## Failure-mode map", "", sweep_grid(frame), ""]
+    valid = frame[frame.get("failure_mode", -1) != -1] if "failure_mode" in frame else frame
+    if len(valid):
+        plot_error_bars(valid, figures / "closed_loop_error.png", target)
+        plot_angles(directory, valid, figures / "closed_loop_angles.png", target)
+        plot_step_times(directory, valid, figures / "closed_loop_step_time.png")
+        lines += ["## Figures", "",
+                  "![error](figures/closed_loop_error.png)", "",
+                  "*Cube angle error at the end of each run (rad); green bars succeeded, "
+                  "labels give the failure mode.*", "",
+                  "![angles](figures/closed_loop_angles.png)", "",
+                  "*Cube angle (rad) against time (s) for every run; dashed: the target.*", "",
+                  "![times](figures/closed_loop_step_time.png)", "",
+                  "*Control-step wall time (ms, log scale) per run: LCS build plus the "
+                  "controller's ADMM; dashed lines: the seed's 60 ms and the 50 ms period.*",
+                  ""]
+    if render:
+        lines += _animation_section(directory, valid, config)
+    path = directory / "report.md"
+    atomic_write_bytes(path, ("\n".join(lines).rstrip() + "\n").encode())
+    return path
+
+
+def _animation_section(directory: Path, frame: pd.DataFrame, config: Config) -> list[str]:
+    successes = frame[frame.get("success", False) == True]  # noqa: E712 - pandas mask
+    if not len(successes):
+        return ["## Animation", "", "No successful run to animate.", ""]
+    name = str(successes.iloc[0]["case"])
+    states = np.load(directory / "cells" / name / "states.npy")
+    dt = float(successes.iloc[0].get("dt") or config.mpc.dt)
+    try:
+        render_run(_trajectory_from(states, dt), build_scene(config=config),
+                   directory / "figures" / "closed_loop_success.gif", dt)
+    except RenderUnavailable as error:
+        return ["## Animation", "", f"Not rendered: {error}", ""]
+    return ["## Animation", "", "![run](figures/closed_loop_success.gif)", "",
+            f"*`{name}`: one successful run, one frame per control step ({dt:g} s).*", ""]
+
+
+def _trajectory_from(states: np.ndarray, dt: float) -> Any:
+    from bench.closed_loop import Trajectory
+
+    times = np.arange(len(states)) * dt
+    return Trajectory(times, states, np.zeros((len(states) - 1, 2)), np.zeros(len(states)))
+
+
+def sweep_grid(frame: pd.DataFrame) -> str:
+    """Markdown grid of failure-mode labels: rows ``dt / rho schedule``, columns ``Q_box / l``."""
+    sweep = frame[frame["group"] == "sweep"]
+    rows = sorted({(r.dt, r.rho_schedule) for r in sweep.itertuples()})
+    cols = sorted({(r.q_cube_pose, r.model_l) for r in sweep.itertuples()})
+    header = "| dt / rho schedule | " + " | ".join(f"Q_box {q:g}, l {side:g}"
+                                                   for q, side in cols) + " |"
+    lines = [header, "|" + "---|" * (len(cols) + 1)]
+    for dt, schedule in rows:
+        cells = []
+        for q, side in cols:
+            match = sweep[(sweep.dt == dt) & (sweep.rho_schedule == schedule)
+                          & (sweep.q_cube_pose == q) & (sweep.model_l == side)]
+            if not len(match):
+                cells.append("-")
+                continue
+            hit = match.iloc[0]
+            mode = int(hit["failure_mode"])
+            cells.append("success" if mode == 0 else f"mode {mode}" if mode > 0 else "error")
+            if mode >= 0:
+                cells[-1] += f" ({hit['angle_error']:.2f})"
+        lines.append(f"| {dt:g} / {schedule} | " + " | ".join(cells) + " |")
+    return ("Each cell: the failure-mode label (angle error at the end, rad).\n\n"
+            + "\n".join(lines))
+
+
+def with_duration(cases: Iterable[Case], duration: float) -> list[Case]:
+    return [replace(case, duration=duration) for case in cases]
