@@ -2,20 +2,14 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import sys
 
 import numpy as np
 import pytest
+from conftest import enumerated_optimum, pick
 
-from problems import families
-from problems.config import load_config
-from problems.instance import Problem, load_instances
-from problems.lcs import linearize
-from problems.mpc import build_mpc
-from problems.scene import build_scene
-from problems.suites import generate_suite, sample_states, scripted_push
+from problems.instance import Problem
 from solvers import registry
 from solvers.backends.miqp import (
     GurobiMIQP,
@@ -29,54 +23,8 @@ from solvers.projection import c3plus_projection
 from solvers.residuals import complementarity_violation, cost_error, primal_residual
 
 MID = settings_for("mid_accuracy", time_limit=60.0)
-META = {"scene": "planar", "l": 0.29, "dt": 0.05, "T": 1, "seed": 0, "precision": "float64"}
 
 
-# --- fixtures -------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def quick(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Problem]:
-    out = tmp_path_factory.mktemp("quick")
-    generate_suite("quick", out, progress=False)
-    return {p.name: p for p in load_instances(out, ("projection", "mpcc"))}
-
-
-def pick(instances: dict[str, Problem], prefix: str, position: int) -> Problem:
-    """The ``position``-th instance (sorted by name) whose name starts with ``prefix``
-    (names carry state indices that change with the suite's scripted push)."""
-    names = sorted(name for name in instances if name.startswith(prefix))
-    assert names, f"no instance named {prefix}*"
-    return instances[names[position]]
-
-
-@pytest.fixture(scope="module")
-def small_mpccs() -> dict[str, Problem]:
-    """MPCCs of horizon 1 and 2 (6 and 12 pairs) at the quick suite's two states, keyed
-    ``h<horizon>-<state position>``."""
-    cfg = load_config()
-    record = scripted_push(cfg, 1.5)
-    scene = build_scene(l=0.29, config=cfg)
-    base = build_mpc(scene, cfg.mpc)
-    out: dict[str, Problem] = {}
-    for position, index in enumerate(sample_states(record, 2, 0.02)):
-        lcs = linearize(scene, record.states[index], record.inputs[max(index - 1, 0)],
-                        cfg.mpc.dt)
-        for horizon in (1, 2):
-            key = f"h{horizon}-{position}"
-            mpc = dataclasses.replace(base, horizon=horizon)
-            out[key] = families.mpcc(f"mpcc-h{horizon}-s{index:03d}", lcs, mpc,
-                                     record.states[index], meta=dict(META, T=horizon))
-    return out
-
-
-_REFERENCES: dict[str, float] = {}
-
-
-def reference(problem: Problem) -> float:
-    """Enumerated optimum, cached per instance name."""
-    if problem.name not in _REFERENCES:
-        _, objective = enumerate_modes(problem)
-        _REFERENCES[problem.name] = objective
-    return _REFERENCES[problem.name]
 
 
 C3 = "projection-c3-s"
@@ -182,8 +130,8 @@ def _check_against_enumeration(name: str, problem: Problem, settings: Settings =
     assert result.diagnostics["big_m"] == 0.0
     assert complementarity_violation(problem, result.x) < 1e-9
     assert primal_residual(problem, result.x) < 1e-6
-    assert cost_error(result.objective, reference(problem)) < 1e-6, (
-        result.objective, reference(problem))
+    assert cost_error(result.objective, enumerated_optimum(problem)) < 1e-6, (
+        result.objective, enumerated_optimum(problem))
 
 
 @pytest.mark.parametrize("instance", PROJECTIONS)
@@ -207,8 +155,8 @@ def test_scip_without_polish_is_close_and_reports_gap(small_mpccs: dict[str, Pro
     assert "polished" not in result.diagnostics
     assert 0.0 <= result.diagnostics["mip_gap"] <= 1e-6
     assert complementarity_violation(problem, result.x) <= 1e-6
-    assert cost_error(result.objective, reference(problem)) < 1e-4
-    assert result.diagnostics["dual_bound"] <= reference(problem) * (1 + 1e-6)
+    assert cost_error(result.objective, enumerated_optimum(problem)) < 1e-4
+    assert result.diagnostics["dual_bound"] <= enumerated_optimum(problem) * (1 + 1e-6)
 
 
 @pytest.mark.parametrize("instance", [PROJECTIONS[0], PROJECTIONS[2]])

@@ -2,70 +2,18 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
+from conftest import enumerated_optimum, pick
 
-from problems import families
-from problems.config import load_config
-from problems.instance import Problem, load_instances
-from problems.lcs import linearize
-from problems.mpc import build_mpc
-from problems.scene import build_scene
-from problems.suites import generate_suite, sample_states, scripted_push
+from problems.instance import Problem
 from solvers import registry
-from solvers.backends.miqp import enumerate_modes
 from solvers.base import settings_for
 from solvers.residuals import complementarity_violation, primal_residual
 
 MID = settings_for("mid_accuracy", time_limit=60.0)
-META = {"scene": "planar", "l": 0.29, "dt": 0.05, "T": 1, "seed": 0, "precision": "float64"}
 
 
-@pytest.fixture(scope="module")
-def quick(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Problem]:
-    out = tmp_path_factory.mktemp("quick")
-    generate_suite("quick", out, progress=False)
-    return {p.name: p for p in load_instances(out, ("projection", "mpcc"))}
-
-
-def pick(instances: dict[str, Problem], prefix: str, position: int) -> Problem:
-    """The ``position``-th instance (sorted by name) whose name starts with ``prefix``
-    (names carry state indices that change with the suite's scripted push)."""
-    names = sorted(name for name in instances if name.startswith(prefix))
-    assert names, f"no instance named {prefix}*"
-    return instances[names[position]]
-
-
-@pytest.fixture(scope="module")
-def small_mpccs() -> dict[str, Problem]:
-    """MPCCs of horizon 1 (6 pairs) and 2 (12 pairs) at the quick suite's two states, keyed
-    ``h<horizon>-<state position>``."""
-    cfg = load_config()
-    record = scripted_push(cfg, 1.5)
-    scene = build_scene(l=0.29, config=cfg)
-    base = build_mpc(scene, cfg.mpc)
-    out: dict[str, Problem] = {}
-    for position, index in enumerate(sample_states(record, 2, 0.02)):
-        lcs = linearize(scene, record.states[index], record.inputs[max(index - 1, 0)],
-                        cfg.mpc.dt)
-        for horizon in (1, 2):
-            key = f"h{horizon}-{position}"
-            mpc = dataclasses.replace(base, horizon=horizon)
-            out[key] = families.mpcc(f"mpcc-h{horizon}-s{index:03d}", lcs, mpc,
-                                     record.states[index], meta=dict(META, T=horizon))
-    return out
-
-
-_OPTIMA: dict[str, float] = {}
-
-
-def optimum(problem: Problem) -> float:
-    """Enumerated global optimum, cached per instance name."""
-    if problem.name not in _OPTIMA:
-        _OPTIMA[problem.name] = enumerate_modes(problem)[1]
-    return _OPTIMA[problem.name]
 
 
 def _check_local_solution(name: str, problem: Problem) -> float:
@@ -77,7 +25,7 @@ def _check_local_solution(name: str, problem: Problem) -> float:
     scale = 1.0 if problem.b is None else max(1.0, float(np.abs(problem.b).max()))
     assert primal_residual(problem, result.x) <= 1e-6 * scale
     assert result.objective == pytest.approx(problem.objective(result.x))
-    best = optimum(problem)
+    best = enumerated_optimum(problem)
     excess = (result.objective - best) / max(1.0, abs(best))
     assert excess >= -1e-6, (result.objective, best)
     return excess

@@ -1,0 +1,66 @@
+"""Fixtures shared by the complementarity tests (MIQP and NLP backends)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from problems import families
+from problems.config import load_config
+from problems.instance import Problem, load_instances
+from problems.lcs import linearize
+from problems.mpc import build_mpc
+from problems.scene import build_scene
+from problems.suites import generate_suite, sample_states, scripted_push
+from solvers.backends.miqp import enumerate_modes
+
+SMALL_MPCC_META = {"scene": "planar", "l": 0.29, "dt": 0.05, "T": 1, "seed": 0,
+                   "precision": "float64"}
+
+
+@pytest.fixture(scope="session")
+def quick(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Problem]:
+    """The quick suite's projection and mpcc instances by name."""
+    out: Path = tmp_path_factory.mktemp("quick_complementarity")
+    generate_suite("quick", out, progress=False)
+    return {p.name: p for p in load_instances(out, ("projection", "mpcc"))}
+
+
+@pytest.fixture(scope="session")
+def small_mpccs() -> dict[str, Problem]:
+    """MPCCs of horizon 1 (6 pairs) and 2 (12 pairs) at the quick suite's two states, keyed
+    ``h<horizon>-<state position>``."""
+    cfg = load_config()
+    record = scripted_push(cfg, 1.5)
+    scene = build_scene(l=0.29, config=cfg)
+    base = build_mpc(scene, cfg.mpc)
+    out: dict[str, Problem] = {}
+    for position, index in enumerate(sample_states(record, 2, 0.02)):
+        lcs = linearize(scene, record.states[index], record.inputs[max(index - 1, 0)],
+                        cfg.mpc.dt)
+        for horizon in (1, 2):
+            mpc = dataclasses.replace(base, horizon=horizon)
+            out[f"h{horizon}-{position}"] = families.mpcc(
+                f"mpcc-h{horizon}-s{index:03d}", lcs, mpc, record.states[index],
+                meta=dict(SMALL_MPCC_META, T=horizon))
+    return out
+
+
+def pick(instances: dict[str, Problem], prefix: str, position: int) -> Problem:
+    """The ``position``-th instance (sorted by name) whose name starts with ``prefix``
+    (names carry state indices that change with the suite's scripted push)."""
+    names = sorted(name for name in instances if name.startswith(prefix))
+    assert names, f"no instance named {prefix}*"
+    return instances[names[position]]
+
+
+_OPTIMA: dict[str, float] = {}
+
+
+def enumerated_optimum(problem: Problem) -> float:
+    """Global optimum by enumeration of the complementarity modes, cached per instance."""
+    if problem.name not in _OPTIMA:
+        _OPTIMA[problem.name] = enumerate_modes(problem)[1]
+    return _OPTIMA[problem.name]
