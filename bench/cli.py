@@ -6,6 +6,8 @@ Subcommands:
 * ``problems list DIR``: a table of the instances below DIR by family.
 * ``solvers``: the registry: every backend, its availability, version and families.
 * ``run``, ``report``, ``compare``: the benchmark (``bench/commands.py``).
+* ``closed-loop``, ``closed-loop-suite``, ``sweep``: C3 / C3+ driving the MuJoCo cube.
+* ``perf``: control-step time of the fast paths against the reference controller.
 """
 
 from __future__ import annotations
@@ -238,6 +240,10 @@ def build_parser() -> argparse.ArgumentParser:
     loop_suite.add_argument("--no-render", action="store_true", help="skip the animation")
     loop_suite.set_defaults(handler=cmd_closed_loop_suite)
     sweep.set_defaults(handler=cmd_sweep)
+
+    from bench.perf import register_perf_command
+
+    register_perf_command(sub)
 
     try:
         from bench.commands import register_commands

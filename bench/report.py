@@ -270,8 +270,27 @@ def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
             else:
                 out.append(f"![{figure.title}]({figure.path})\n")
                 out.append(f"*Figure {number}: {figure.caption}*\n")
+    out += _linked_sections(paths)
     out += ["## Results schema\n", store.schema_markdown()]
     return "\n".join(out)
+
+
+def _linked_sections(paths: store.SuitePaths) -> list[str]:
+    """The ``perf`` section (from ``results/perf/``) and a pointer to the closed-loop report."""
+    from bench.perf import perf_report_section
+
+    results_dir = paths.root.parent
+    out = [perf_report_section(results_dir,
+                               figure_link="../perf/figures/perf_time_vs_samples.png")]
+    closed_loop = results_dir / "closed_loop" / "quick" / "report.md"
+    out.append("## Closed loop\n")
+    if closed_loop.exists():
+        out.append("C3 / C3+ driving the MuJoCo cube with each backend inside: "
+                   "[closed_loop/quick/report.md](../closed_loop/quick/report.md) "
+                   "(`c3bench closed-loop-suite --suite quick`).\n")
+    else:
+        out.append("_Not run: `c3bench closed-loop-suite --suite quick` writes it._\n")
+    return out
 
 
 def write_report(suite: str, results_dir: str | Path = "results",

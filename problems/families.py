@@ -71,7 +71,7 @@ def _cost_terms(layout: HorizonLayout, mpc: MPC) -> tuple[np.ndarray, np.ndarray
     return P, q, offset
 
 
-def _dynamics_rows(layout: HorizonLayout, lcs: LCS, x0: np.ndarray
+def dynamics_rows(layout: HorizonLayout, lcs: LCS, x0: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
     """``x_0 = x0``, ``x_{k+1} - A x_k - B u_k - D lam_k = d`` and, with eta,
     ``eta_k - E x_k - F lam_k - H u_k = c``."""
@@ -188,7 +188,7 @@ def consensus_qp(
     P[np.arange(steps), np.arange(steps)] += 2 * np.tile(g, layout.horizon)
     q[:steps] += -2 * (g * anchor).ravel()
     offset += float(np.sum(g * anchor * anchor))
-    A, b = _dynamics_rows(layout, lcs, x0)
+    A, b = dynamics_rows(layout, lcs, x0)
     lb = ub = None
     if input_bounds:
         lb, ub = _input_bounds(layout, mpc.force_limit)
@@ -209,7 +209,7 @@ def mpcc(name: str, lcs: LCS, mpc: MPC, x0: np.ndarray,
     x0 = _check_x0(x0, lcs)
     layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, mpc.horizon)
     P, q, offset = _cost_terms(layout, mpc)
-    A, b = _dynamics_rows(layout, lcs, x0)
+    A, b = dynamics_rows(layout, lcs, x0)
     lb, ub = _input_bounds(layout, mpc.force_limit)
     pairs = []
     for k in range(layout.horizon):

@@ -322,50 +322,79 @@ def linearize(
     dt = check_dt(dt)
     if contact_model not in CONTACT_MODELS:
         raise ValueError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
-    nq, nv = scene.nq, scene.nv
     dyn = smooth_dynamics(scene, x, u)
     frames = contact_frames(scene)
-    q0 = x[:nq]
-    N, Np = dyn.N, dyn.N_pinv
-    A = np.block([
-        [np.eye(nq) + dt**2 * N @ dyn.J_q, dt * N + dt**2 * N @ dyn.J_v],
-        [dt * dyn.J_q, np.eye(nv) + dt * dyn.J_v],
-    ])
-    B = np.vstack([dt**2 * N @ dyn.J_u, dt * dyn.J_u])
-    d = np.concatenate([dt**2 * N @ dyn.d_v, dt * dyn.d_v])
-    Et = frames.E_t
-    mu_rows = Et.T @ frames.mu
+    arrays = assemble_lcs(
+        dt, x[: scene.nq], dyn.N, dyn.N_pinv, dyn.J_q[None], dyn.J_v[None], dyn.J_u[None],
+        dyn.d_v[None], dyn.M_inv[None], frames.phi[None], frames.J_n[None], frames.J_t[None],
+        frames.E_t, frames.mu, contact_model)
+    return LCS(**{name: value[0] for name, value in arrays.items()}, dt=dt,
+               contact_model=contact_model, n_contacts=len(frames.phi),
+               friction_directions=scene.friction_directions, phi=frames.phi)
+
+
+def assemble_lcs(dt: float, q0: np.ndarray, N: np.ndarray, N_pinv: np.ndarray,
+                 J_q: np.ndarray, J_v: np.ndarray, J_u: np.ndarray, d_v: np.ndarray,
+                 M_inv: np.ndarray, phi: np.ndarray, J_n: np.ndarray, J_t: np.ndarray,
+                 E_t: np.ndarray, mu: np.ndarray, contact_model: str
+                 ) -> dict[str, np.ndarray]:
+    """The LCS matrices (module docstring) for ``n`` models at once (leading axis ``n``).
+
+    Shared: ``q0`` (nq), ``N`` (nq x nv), ``N_pinv`` (nv x nq), ``E_t`` (contacts x
+    directions), ``mu`` (contacts). Per model: ``J_q`` (n, nv, nq), ``J_v`` (n, nv, nv),
+    ``J_u`` (n, nv, nu), ``d_v`` (n, nv), ``M_inv`` (n, nv, nv), ``phi`` (n, contacts),
+    ``J_n`` (n, contacts, nv), ``J_t`` (n, directions, nv). Returns ``A, B, D, d, E, F, H, c``
+    stacked along the leading axis; :func:`linearize` calls it with ``n = 1`` and
+    :mod:`problems.lcs_batch` with one model per sampled cube side.
+    """
+    n, nv, nq = J_q.shape
+    nu = J_u.shape[-1]
+    Et = E_t
+    eye_q = np.broadcast_to(np.eye(nq), (n, nq, nq))
+    eye_v = np.broadcast_to(np.eye(nv), (n, nv, nv))
+    A = np.concatenate([
+        np.concatenate([eye_q + dt**2 * N @ J_q, dt * N + dt**2 * N @ J_v], axis=2),
+        np.concatenate([dt * J_q, eye_v + dt * J_v], axis=2),
+    ], axis=1)
+    B = np.concatenate([dt**2 * N @ J_u, dt * J_u], axis=1)
+    d = np.concatenate([dt**2 * d_v @ N.T, dt * d_v], axis=1)
+    mu_rows = Et.T @ mu
     if contact_model == "anitescu":
-        J = Et.T @ frames.J_n + mu_rows[:, None] * frames.J_t
-        E = np.hstack([dt * J @ dyn.J_q + Et.T @ frames.J_n @ Np / dt, J + dt * J @ dyn.J_v])
-        F = dt * J @ dyn.M_inv @ J.T
-        H = dt * J @ dyn.J_u
-        c = Et.T @ frames.phi / dt + dt * J @ dyn.d_v - Et.T @ frames.J_n @ Np @ q0 / dt
-    else:
-        nc = Et.shape[0]
-        Jn, Jt, Minv = frames.J_n, frames.J_t, dyn.M_inv
-        J = np.vstack([np.zeros((nc, nv)), Jn, Jt])
-        E = np.vstack([
-            np.zeros((nc, nq + nv)),
-            np.hstack([Jn @ Np + dt**2 * Jn @ dyn.J_q, dt * Jn + dt**2 * Jn @ dyn.J_v]),
-            np.hstack([dt * Jt @ dyn.J_q, Jt + dt * Jt @ dyn.J_v]),
-        ])
-        F = np.block([
-            [np.zeros((nc, nc)), np.diag(frames.mu), -Et],
-            [np.zeros((nc, nc)), dt**2 * Jn @ Minv @ Jn.T, dt**2 * Jn @ Minv @ Jt.T],
-            [Et.T, dt * Jt @ Minv @ Jn.T, dt * Jt @ Minv @ Jt.T],
-        ])
-        H = np.vstack([np.zeros((nc, scene.nu)), dt**2 * Jn @ dyn.J_u, dt * Jt @ dyn.J_u])
+        J = Et.T @ J_n + mu_rows[:, None] * J_t  # (n, nlam, nv)
+        JnNp = Et.T @ J_n @ N_pinv
+        E = np.concatenate([dt * J @ J_q + JnNp / dt, J + dt * J @ J_v], axis=2)
+        F = dt * J @ M_inv @ np.swapaxes(J, -1, -2)
+        F = 0.5 * (F + np.swapaxes(F, -1, -2))
+        H = dt * J @ J_u
+        c = (phi @ Et) / dt + dt * (J @ d_v[..., None])[..., 0] - (JnNp @ q0) / dt
+    elif contact_model == "stewart_trinkle":
+        nc, nd = Et.shape
+        Jn, Jt = J_n, J_t
+        J = np.concatenate([np.zeros((n, nc, nv)), Jn, Jt], axis=1)
+        JnT, JtT = np.swapaxes(Jn, -1, -2), np.swapaxes(Jt, -1, -2)
+        E = np.concatenate([
+            np.zeros((n, nc, nq + nv)),
+            np.concatenate([Jn @ N_pinv + dt**2 * Jn @ J_q, dt * Jn + dt**2 * Jn @ J_v], axis=2),
+            np.concatenate([dt * Jt @ J_q, Jt + dt * Jt @ J_v], axis=2),
+        ], axis=1)
+        zeros_c = np.zeros((n, nc, nc))
+        F = np.concatenate([
+            np.concatenate([zeros_c, np.broadcast_to(np.diag(mu), (n, nc, nc)),
+                            np.broadcast_to(-Et, (n, nc, nd))], axis=2),
+            np.concatenate([zeros_c, dt**2 * Jn @ M_inv @ JnT, dt**2 * Jn @ M_inv @ JtT],
+                           axis=2),
+            np.concatenate([np.broadcast_to(Et.T, (n, nd, nc)), dt * Jt @ M_inv @ JnT,
+                            dt * Jt @ M_inv @ JtT], axis=2),
+        ], axis=1)
+        H = np.concatenate([np.zeros((n, nc, nu)), dt**2 * Jn @ J_u, dt * Jt @ J_u], axis=1)
         c = np.concatenate([
-            np.zeros(nc),
-            frames.phi - Jn @ Np @ q0 + dt**2 * Jn @ dyn.d_v,
-            dt * Jt @ dyn.d_v,
-        ])
-    D = np.vstack([dt**2 * N @ dyn.M_inv @ J.T, dt * dyn.M_inv @ J.T])
-    if contact_model == "anitescu":
-        F = 0.5 * (F + F.T)
-    return LCS(
-        A=A, B=B, D=D, d=d, E=E, F=F, H=H, c=c, dt=dt, contact_model=contact_model,
-        n_contacts=len(frames.phi), friction_directions=scene.friction_directions,
-        phi=frames.phi,
-    )
+            np.zeros((n, nc)),
+            phi - (Jn @ N_pinv @ q0) + dt**2 * (Jn @ d_v[..., None])[..., 0],
+            dt * (Jt @ d_v[..., None])[..., 0],
+        ], axis=1)
+    else:
+        raise ValueError(f"contact_model must be one of {CONTACT_MODELS}, got "
+                         f"{contact_model!r}")
+    D = np.concatenate([dt**2 * N @ M_inv @ np.swapaxes(J, -1, -2),
+                        dt * M_inv @ np.swapaxes(J, -1, -2)], axis=1)
+    return {"A": A, "B": B, "D": D, "d": d, "E": E, "F": F, "H": H, "c": c}

@@ -35,6 +35,7 @@ BACKEND_MODULES: tuple[str, ...] = (
     "solvers.backends.miqp",
     "solvers.backends.nlp",
     "solvers.backends.c3",
+    "solvers.fast",
 )
 
 _BACKENDS: dict[str, Backend] = {}

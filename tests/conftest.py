@@ -1,4 +1,4 @@
-"""Fixtures shared by the complementarity tests (MIQP and NLP backends)."""
+"""Shared test fixtures (complementarity instances) and the test order (JAX tests last)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,12 @@ from solvers.backends.miqp import enumerate_modes
 
 SMALL_MPCC_META = {"scene": "planar", "l": 0.29, "dt": 0.05, "T": 1, "seed": 0,
                    "precision": "float64"}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Run the JAX tests last: once JAX is loaded it runs threads, and forking a process
+    (the registry isolates every solve in a forked child) is then unsafe."""
+    items.sort(key=lambda item: item.get_closest_marker("jax") is not None)
 
 
 @pytest.fixture(scope="session")

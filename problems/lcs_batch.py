@@ -1,0 +1,361 @@
+"""Batched LCS linearisation: one control step's LCS for many model samples (cube sides) at once.
+
+The robust controller linearises ``n`` models that differ only in the cube side ``l_j`` at the
+same measured state ``x`` and input ``u``. :func:`problems.lcs.linearize` would repeat every
+MuJoCo call ``n`` times; :class:`BatchLinearizer` splits the work by what depends on ``l``:
+
+**Once per control step** (MuJoCo, on one reference model of side ``l_ref``):
+
+* the smooth dynamics by central differences, ``J_q^ref, J_v^ref, J_u^ref``, the smooth
+  acceleration ``a^ref`` and ``N``, ``N^+`` (:func:`problems.lcs.smooth_dynamics`);
+* the mass matrix ``M^ref`` and the cube's rotational Jacobian ``J_r`` (3 x nv);
+* the cube pose (origin ``p``, rotation ``R``), the origin Jacobians ``J_p0`` of the cube and
+  of the ball, the ball centre ``b`` and its radius ``r``.
+
+**Per sample** (numpy, a leading sample axis, no Python loop over samples):
+
+* cube inertia ``I_j = m (h_j^2 + h_j^2) / 3`` with ``h_j = l_j / 2`` (MuJoCo's box formula;
+  the cube's inertia is isotropic, so ``M_j = M^ref + (I_j - I_ref) J_r^T J_r``);
+* ``M_j^-1`` (inverted, then symmetrised like :func:`problems.lcs.smooth_dynamics`) and the
+  smooth dynamics of sample ``j``: with ``v' = M^-1 f(q, v, u)`` and ``f`` independent of
+  ``l`` (the cube's centre of mass is on its hinge and its inertia is isotropic, so neither
+  the bias forces nor ``M`` depend on ``q`` or on ``l`` other than through ``I_j``),
+  ``J_*^j = M_j^-1 M^ref J_*^ref`` for ``* = q, v, u``, ``a^j = M_j^-1 M^ref a^ref`` and
+  ``d_v^j = a^j - J_q^j q_0 - J_v^j v_0 - J_u^j u``;
+* contact geometry: bottom corners ``c_i^j = p + R s_i^j`` with ``s = (+-h_j, 0, -h_j)``,
+  ``phi = c_z - z_table``, normal ``+z``; ball-cube distance in closed form (what
+  ``mj_geomDistance`` returns for a sphere and a box): ``o = R^T (b - p)``; outside the box the
+  nearest box point is ``p + R clip(o, -h_j, h_j)``; with the centre inside it is the nearest
+  face; ``phi = +-||b - near|| - r``, normal from the box point to the ball centre, the ball's
+  point ``b - r n``;
+* point Jacobians of a body point ``x``: ``J_p(x) = J_p0 + J_r x (x - p_0)`` column by column
+  (rigid-body velocity ``v_x = v_0 + omega x (x - p_0)``);
+* the LCS blocks with exactly the formulas of :mod:`problems.lcs` (Anitescu or
+  Stewart-Trinkle), as batched matrix products.
+
+The result equals ``linearize(build_scene(l=l_j), x, u, dt)`` for every sample to rounding
+(tested to 1e-9 along the scripted push). Only the planar scene is supported; the spatial
+variant raises ``NotImplementedError``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from problems.config import Config, load_config
+from problems.lcs import (
+    CONTACT_MODELS,
+    LCS,
+    LCS_MATRICES,
+    assemble_lcs,
+    check_dt,
+    smooth_dynamics,
+)
+from problems.scene import Scene, build_scene
+
+_UIDS = itertools.count(1)
+
+
+def next_uid() -> int:
+    """A process-wide unique integer: the identity of an LCS batch (factorisation caches)."""
+    return next(_UIDS)
+
+
+@dataclass
+class LCSBatch:
+    """``n`` LCS with the same dimensions, stacked along a leading sample axis.
+
+    ``x'_j = A_j x + B_j u + D_j lam + d_j``, ``0 <= lam perp E_j x + F_j lam + H_j u + c_j``.
+
+    Attributes
+    ----------
+    A, B, D, d, E, F, H, c
+        (n, ...) stacks of the LCS matrices of :class:`problems.lcs.LCS`.
+    dt
+        Time step (s), common to all samples.
+    contact_model, n_contacts, friction_directions
+        As in :class:`problems.lcs.LCS`.
+    phi
+        (n, contacts) signed distances.
+    sides
+        (n,) cube sides of the samples (``nan`` when unknown).
+    uid
+        Identity of this batch: arrays are made read-only at construction, so the same
+        ``uid`` means the same data (used as the LCS key of factorisation caches).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    D: np.ndarray
+    d: np.ndarray
+    E: np.ndarray
+    F: np.ndarray
+    H: np.ndarray
+    c: np.ndarray
+    dt: float
+    contact_model: str = "anitescu"
+    n_contacts: int = 0
+    friction_directions: int = 0
+    phi: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    sides: np.ndarray | None = None
+    uid: int = field(default=0, init=False)
+
+    def __post_init__(self) -> None:
+        n = int(np.shape(self.A)[0]) if np.ndim(self.A) == 3 else -1
+        if n < 1:
+            raise ValueError(f"LCSBatch.A must have shape (n, nx, nx) with n >= 1, got "
+                             f"{np.shape(self.A)}")
+        nx, nu, nlam = self.A.shape[1], np.shape(self.B)[-1], np.shape(self.D)[-1]
+        expected = {
+            "A": (n, nx, nx), "B": (n, nx, nu), "D": (n, nx, nlam), "d": (n, nx),
+            "E": (n, nlam, nx), "F": (n, nlam, nlam), "H": (n, nlam, nu), "c": (n, nlam),
+        }
+        for name, shape in expected.items():
+            value = np.asarray(getattr(self, name))
+            if value.shape != shape:
+                raise ValueError(f"LCSBatch.{name} must have shape {shape}, got {value.shape}")
+            if not np.issubdtype(value.dtype, np.floating):
+                value = value.astype(np.float64)
+            if not np.all(np.isfinite(value)):
+                raise ValueError(f"LCSBatch.{name} has non-finite entries")
+            if value.flags.writeable:
+                value.setflags(write=False)
+            setattr(self, name, value)
+        if not (math.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"LCSBatch.dt must be a finite number > 0, got {self.dt!r}")
+        self.phi = np.asarray(self.phi, dtype=float)
+        if self.sides is not None:
+            self.sides = np.asarray(self.sides, dtype=float).reshape(n)
+        self.uid = next_uid()
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.A.shape[0])
+
+    @property
+    def nx(self) -> int:
+        return int(self.A.shape[1])
+
+    @property
+    def nu(self) -> int:
+        return int(self.B.shape[2])
+
+    @property
+    def nlam(self) -> int:
+        return int(self.D.shape[2])
+
+    def sample(self, j: int) -> LCS:
+        """Sample ``j`` as a :class:`problems.lcs.LCS` (float64 copies)."""
+        arrays = {name: np.array(getattr(self, name)[j], dtype=np.float64)
+                  for name in LCS_MATRICES}
+        phi = self.phi[j].copy() if self.phi.ndim == 2 and self.phi.shape[0] else np.zeros(0)
+        return LCS(**arrays, dt=self.dt, contact_model=self.contact_model,
+                   n_contacts=self.n_contacts, friction_directions=self.friction_directions,
+                   phi=phi)
+
+    def samples(self) -> list[LCS]:
+        """All samples as :class:`problems.lcs.LCS` objects."""
+        return [self.sample(j) for j in range(self.n_samples)]
+
+    @classmethod
+    def from_lcs(cls, systems: Sequence[LCS], sides: Sequence[float] | None = None
+                 ) -> LCSBatch:
+        """Stack LCS objects (same dimensions, dt and contact model) into a batch."""
+        if len(systems) < 1:
+            raise ValueError("need at least one LCS")
+        first = systems[0]
+        for lcs in systems[1:]:
+            if (lcs.nx, lcs.nu, lcs.nlam) != (first.nx, first.nu, first.nlam):
+                raise ValueError("all LCS must have the same dimensions")
+            if lcs.dt != first.dt or lcs.contact_model != first.contact_model:
+                raise ValueError("all LCS must have the same dt and contact model")
+        arrays = {name: np.stack([getattr(lcs, name) for lcs in systems])
+                  for name in LCS_MATRICES}
+        phis = [np.asarray(lcs.phi, dtype=float) for lcs in systems]
+        phi = np.stack(phis) if len({p.shape for p in phis}) == 1 else np.zeros((len(phis), 0))
+        return cls(**arrays, dt=first.dt, contact_model=first.contact_model,
+                   n_contacts=first.n_contacts, friction_directions=first.friction_directions,
+                   phi=phi, sides=None if sides is None else np.asarray(sides, dtype=float))
+
+    def repeat(self, n: int) -> LCSBatch:
+        """A batch of ``n`` copies of sample 0 (for tests of identical samples)."""
+        arrays = {name: np.repeat(getattr(self, name)[:1], n, axis=0) for name in LCS_MATRICES}
+        sides = None if self.sides is None else np.repeat(self.sides[:1], n)
+        phi = np.repeat(self.phi[:1], n, axis=0) if self.phi.ndim == 2 else self.phi
+        return LCSBatch(**arrays, dt=self.dt, contact_model=self.contact_model,
+                        n_contacts=self.n_contacts,
+                        friction_directions=self.friction_directions, phi=phi, sides=sides)
+
+
+def _skew_apply(columns: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``columns[..., :, i] x r`` for every column ``i``: (..., 3, nv) with ``r`` (..., 3)."""
+    a0, a1, a2 = columns[..., 0, :], columns[..., 1, :], columns[..., 2, :]
+    r0, r1, r2 = r[..., 0, None], r[..., 1, None], r[..., 2, None]
+    return np.stack([a1 * r2 - a2 * r1, a2 * r0 - a0 * r2, a0 * r1 - a1 * r0], axis=-2)
+
+
+class BatchLinearizer:
+    """Linearise the planar cube-tipping scene for many cube sides at once.
+
+    Parameters
+    ----------
+    sides
+        Cube sides ``l_j`` of the model samples (m), each finite and > 0.
+    config
+        Task constants (default: the packaged ``cube_tipping.toml``).
+    variant
+        ``"planar"`` only; ``"spatial"`` raises ``NotImplementedError``.
+    contact_model
+        ``"anitescu"`` (default) or ``"stewart_trinkle"``.
+    reference_side
+        Side of the MuJoCo model used for the ``l``-independent quantities (default: the
+        config's plant side); any value gives the same LCS up to rounding.
+    """
+
+    def __init__(self, sides: Sequence[float] | np.ndarray, config: Config | None = None,
+                 variant: str = "planar", contact_model: str = "anitescu",
+                 reference_side: float | None = None) -> None:
+        if variant != "planar":
+            raise NotImplementedError(
+                f"BatchLinearizer supports the planar scene only (got variant {variant!r}); "
+                "the spatial scene needs the four-corner, 3-D ball-box geometry: use "
+                "problems.lcs.linearize per sample")
+        if contact_model not in CONTACT_MODELS:
+            raise ValueError(f"contact_model must be one of {CONTACT_MODELS}, got "
+                             f"{contact_model!r}")
+        side_array = np.asarray(sides, dtype=float).reshape(-1)
+        if side_array.size < 1 or not np.all(np.isfinite(side_array)) or np.any(side_array <= 0):
+            raise ValueError(f"sides must be finite numbers > 0, got {sides!r}")
+        self.config = config or load_config()
+        self.variant = variant
+        self.contact_model = contact_model
+        self.sides = side_array
+        ref = self.config.scene.cube_side if reference_side is None else float(reference_side)
+        self.scene: Scene = build_scene(l=ref, variant="planar", config=self.config)
+        scene = self.scene
+        self.cube_body = scene.body("cube")
+        self.ball_body = scene.body("ball")
+        self.cube_geom = scene.geom("cube")
+        self.ball_geom = scene.geom("ball")
+        self.ball_radius = float(scene.model.geom_size[self.ball_geom][0])
+        mass = float(scene.model.body_mass[self.cube_body])
+        self.half = self.sides / 2.0
+        # MuJoCo's box inertia about a principal axis, m (h_1^2 + h_2^2) / 3 (isotropic cube)
+        self.inertia = mass * (self.half * self.half + self.half * self.half) / 3.0
+        self.inertia_ref = float(scene.model.body_inertia[self.cube_body][1])
+        h = self.half
+        # bottom corners in the cube frame, in the scene's site order (-x then +x)
+        self.corners_local = np.stack([
+            np.stack([-h, np.zeros_like(h), -h], axis=-1),
+            np.stack([h, np.zeros_like(h), -h], axis=-1),
+        ], axis=1)  # (n, 2, 3)
+        self.friction_directions = scene.friction_directions
+        self.n_contacts = 3
+        self.mu = np.array([self.config.scene.mu_table] * 2 + [self.config.scene.mu_ball])
+        self.E_t = np.kron(np.eye(self.n_contacts), np.ones((1, self.friction_directions)))
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.sides.size)
+
+    def linearize(self, x: np.ndarray, u: np.ndarray, dt: float) -> LCSBatch:
+        """The LCS of every sample at ``(x, u)`` with step ``dt`` (module docstring)."""
+        scene = self.scene
+        model, data = scene.model, scene.data
+        x = scene.check_state(x)
+        u = scene.check_input(u)
+        dt = check_dt(dt)
+        nq, nv = scene.nq, scene.nv
+        # ---- once per control step: MuJoCo at the measured state --------------------------
+        dyn = smooth_dynamics(scene, x, u)
+        acceleration = data.qacc_smooth.copy()
+        M_ref = np.zeros((nv, nv))
+        mujoco.mj_fullM(model, data, M_ref)
+        cube_origin = data.xpos[self.cube_body].copy()
+        ball_origin = data.xpos[self.ball_body].copy()
+        jacp_cube, jacr_cube = np.zeros((3, nv)), np.zeros((3, nv))
+        mujoco.mj_jac(model, data, jacp_cube, jacr_cube, cube_origin, self.cube_body)
+        jacp_ball, jacr_ball = np.zeros((3, nv)), np.zeros((3, nv))
+        mujoco.mj_jac(model, data, jacp_ball, jacr_ball, ball_origin, self.ball_body)
+        box_pos = data.geom_xpos[self.cube_geom].copy()
+        box_rot = data.geom_xmat[self.cube_geom].reshape(3, 3).copy()
+        centre = data.geom_xpos[self.ball_geom].copy()
+        cube_rot = data.xmat[self.cube_body].reshape(3, 3).copy()
+        table_z = self.config.scene.table_height
+        # ---- per sample: inertia, smooth dynamics ------------------------------------------
+        n = self.n_samples
+        M = np.broadcast_to(M_ref, (n, nv, nv)) + \
+            (self.inertia - self.inertia_ref)[:, None, None] * (jacr_cube.T @ jacr_cube)
+        M_inv = np.linalg.inv(M)
+        M_inv = 0.5 * (M_inv + np.swapaxes(M_inv, -1, -2))
+        transfer = M_inv @ M_ref  # M_j^-1 M_ref
+        J_q = transfer @ dyn.J_q
+        J_v = transfer @ dyn.J_v
+        J_u = transfer @ dyn.J_u
+        acc = transfer @ acceleration
+        q0, v0 = x[:nq], x[nq:]
+        d_v = acc - J_q @ q0 - J_v @ v0 - J_u @ u
+        # ---- per sample: contact geometry -------------------------------------------------
+        corners = cube_origin + np.einsum("ab,nkb->nka", cube_rot, self.corners_local)
+        corner_phi = corners[..., 2] - table_z  # (n, 2)
+        corner_jac = jacp_cube + _skew_apply(jacr_cube, corners - cube_origin)  # (n, 2, 3, nv)
+        up = np.array([0.0, 0.0, 1.0])
+        tangent_up = np.array([up[2], 0.0, -up[0]])
+        tangent_up = tangent_up / np.linalg.norm(tangent_up)
+        corner_n = np.einsum("a,nkav->nkv", up, corner_jac)
+        corner_t = np.einsum("a,nkav->nkv", tangent_up, corner_jac)
+        offset = box_rot.T @ (centre - box_pos)  # ball centre in the box frame
+        h3 = np.repeat(self.half[:, None], 3, axis=1)  # (n, 3) half sizes
+        inside = np.all(np.abs(offset) < h3, axis=1)
+        near_local = np.clip(offset, -h3, h3)
+        if np.any(inside):
+            depth = h3[inside] - np.abs(offset)
+            face = np.argmin(depth, axis=1)
+            rows = np.arange(face.size)
+            fixed = np.broadcast_to(offset, depth.shape).copy()
+            fixed[rows, face] = np.sign(offset[face]) * h3[inside][rows, face]
+            near_local[inside] = fixed
+        near = box_pos + near_local @ box_rot.T  # (n, 3) box point
+        gap = centre - near
+        gap_norm = np.linalg.norm(gap, axis=1)
+        ball_phi = np.where(inside, -gap_norm, gap_norm) - self.ball_radius
+        normal = np.where(inside[:, None], -gap, gap) / gap_norm[:, None]
+        ball_point = centre - self.ball_radius * normal
+        jac_a = jacp_ball + _skew_apply(jacr_ball, ball_point - ball_origin)
+        jac_b = jacp_cube + _skew_apply(jacr_cube, near - cube_origin)
+        relative = jac_a - jac_b  # (n, 3, nv)
+        tangent = np.stack([normal[:, 2], np.zeros(n), -normal[:, 0]], axis=1)
+        tangent = tangent / np.linalg.norm(tangent, axis=1, keepdims=True)
+        ball_n = np.einsum("na,nav->nv", normal, relative)
+        ball_t = np.einsum("na,nav->nv", tangent, relative)
+        phi = np.concatenate([corner_phi, ball_phi[:, None]], axis=1)  # (n, 3)
+        J_n = np.concatenate([corner_n, ball_n[:, None]], axis=1)  # (n, 3, nv)
+        J_t = np.stack([corner_t[:, 0], -corner_t[:, 0], corner_t[:, 1], -corner_t[:, 1],
+                        ball_t, -ball_t], axis=1)  # (n, 6, nv)
+        return self._assemble(dt, q0, dyn.N, dyn.N_pinv, J_q, J_v, J_u, d_v, M_inv, phi,
+                              J_n, J_t)
+
+    def _assemble(self, dt: float, q0: np.ndarray, N: np.ndarray, Np: np.ndarray,
+                  J_q: np.ndarray, J_v: np.ndarray, J_u: np.ndarray, d_v: np.ndarray,
+                  M_inv: np.ndarray, phi: np.ndarray, J_n: np.ndarray, J_t: np.ndarray
+                  ) -> LCSBatch:
+        """The LCS blocks of :func:`problems.lcs.assemble_lcs`, one model per sample."""
+        arrays = assemble_lcs(dt, q0, N, Np, J_q, J_v, J_u, d_v, M_inv, phi, J_n, J_t,
+                              self.E_t, self.mu, self.contact_model)
+        return LCSBatch(**arrays, dt=dt, contact_model=self.contact_model,
+                        n_contacts=self.n_contacts,
+                        friction_directions=self.friction_directions, phi=phi,
+                        sides=self.sides.copy())
+
+
+def linearize_batch(sides: Sequence[float] | np.ndarray, x: np.ndarray, u: np.ndarray,
+                    dt: float, config: Config | None = None, variant: str = "planar",
+                    contact_model: str = "anitescu") -> LCSBatch:
+    """One-shot :meth:`BatchLinearizer.linearize` (builds the reference model each call)."""
+    return BatchLinearizer(sides, config, variant, contact_model).linearize(x, u, dt)

@@ -1,0 +1,115 @@
+"""Tests of the JAX-compiled batched C3+ (solvers/fast_jax.py) against the numpy path.
+
+Skipped when JAX is not installed (it is an optional extra: ``pip install c3bench[jax]``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from problems.config import load_config
+from problems.lcs_batch import BatchLinearizer
+from problems.mpc import build_mpc
+from problems.scene import build_scene
+from problems.suites import sample_states, scripted_push
+from solvers.c3 import C3Options
+from solvers.fast import FastC3Plus, RiccatiOptions
+from solvers.fast_jax import (
+    JaxC3Plus,
+    JaxUnavailable,
+    cholesky_solve,
+    gpu_available,
+    jax_modules,
+)
+
+# JAX is imported only when these tests run (not at collection), and conftest.py runs them
+# last: JAX starts threads, and the registry forks solver processes afterwards otherwise.
+pytestmark = [pytest.mark.jax,
+              pytest.mark.skipif(importlib.util.find_spec("jax") is None,
+                                 reason="JAX is not installed (pip install c3bench[jax])")]
+
+SIDES = (0.27, 0.29, 0.30, 0.33)
+
+
+def _relative(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(np.asarray(a, dtype=float) - np.asarray(b, dtype=float)))
+                 / max(1.0, float(np.max(np.abs(np.asarray(b, dtype=float))))))
+
+
+@pytest.fixture(scope="module")
+def setup() -> SimpleNamespace:
+    config = load_config()
+    record = scripted_push(config)
+    mpc = build_mpc(build_scene(l=0.29, config=config), config.mpc)
+    index = sample_states(record, 3, 0.02)[1]
+    x0, u_prev = record.states[index], record.inputs[index - 1]
+    linearizer = BatchLinearizer(SIDES, config)
+    batch = linearizer.linearize(x0, u_prev, config.mpc.dt)
+    single = BatchLinearizer([0.29], config).linearize(x0, u_prev, config.mpc.dt)
+    return SimpleNamespace(mpc=mpc, x0=x0, batch=batch, single=single)
+
+
+def test_cholesky_solve_matches_numpy() -> None:
+    _, jnp, _ = jax_modules()
+    rng = np.random.default_rng(0)
+    Q = rng.normal(size=(5, 8, 8))
+    Q = Q @ np.swapaxes(Q, -1, -2) + 0.1 * np.eye(8)
+    R = rng.normal(size=(5, 8, 3))
+    got = np.asarray(cholesky_solve(jnp, jnp.asarray(Q), jnp.asarray(R)))
+    np.testing.assert_allclose(got, np.linalg.solve(Q, R), rtol=1e-9, atol=1e-9)
+
+
+def test_single_sample_float64_matches_numpy(setup: SimpleNamespace) -> None:
+    numpy_path = FastC3Plus(setup.mpc).solve(setup.single, setup.x0)
+    jax_path = JaxC3Plus(setup.mpc).solve(setup.single, setup.x0)
+    assert numpy_path.ok and jax_path.ok
+    assert _relative(jax_path.u_raw, numpy_path.u_raw) <= 1e-9
+    assert _relative(jax_path.delta, numpy_path.delta) <= 1e-9
+    assert _relative(jax_path.w, numpy_path.w) <= 1e-9
+    assert _relative(jax_path.z_steps, numpy_path.z_steps) <= 1e-9
+    assert jax_path.rho == pytest.approx(numpy_path.rho)
+
+
+def test_shared_input_samples_match_numpy(setup: SimpleNamespace) -> None:
+    weights = [0.4, 0.3, 0.2, 0.1]
+    numpy_path = FastC3Plus(setup.mpc).solve(setup.batch, setup.x0, weights=weights)
+    jax_path = JaxC3Plus(setup.mpc).solve(setup.batch, setup.x0, weights=weights)
+    assert jax_path.ok
+    assert _relative(jax_path.u, numpy_path.u) <= 1e-9
+    assert _relative(jax_path.delta, numpy_path.delta) <= 1e-9
+    assert _relative(jax_path.w, numpy_path.w) <= 1e-9
+
+
+def test_float32_matches_numpy_float32(setup: SimpleNamespace) -> None:
+    numpy32 = FastC3Plus(setup.mpc, riccati=RiccatiOptions(precision="float32")).solve(
+        setup.batch, setup.x0)
+    numpy64 = FastC3Plus(setup.mpc).solve(setup.batch, setup.x0)
+    jax32 = JaxC3Plus(setup.mpc, precision="float32").solve(setup.batch, setup.x0)
+    assert jax32.ok and jax32.delta.dtype == np.float32
+    assert _relative(jax32.u, numpy32.u) <= 1e-3
+    assert _relative(jax32.u, numpy64.u) <= 1e-3
+
+
+def test_adaptive_schedule_matches_numpy(setup: SimpleNamespace) -> None:
+    options = C3Options(rho_schedule="adaptive", keep_iterates=False)
+    numpy_path = FastC3Plus(setup.mpc, options, record_residuals=True).solve(setup.single,
+                                                                            setup.x0)
+    jax_path = JaxC3Plus(setup.mpc, options).solve(setup.single, setup.x0)
+    assert jax_path.rho == pytest.approx(numpy_path.rho)
+    assert _relative(jax_path.delta, numpy_path.delta) <= 1e-9
+    np.testing.assert_allclose(jax_path.consensus_residual, numpy_path.consensus_residual,
+                               rtol=1e-8)
+
+
+def test_options_and_devices_are_checked(setup: SimpleNamespace) -> None:
+    with pytest.raises(ValueError, match="fixed"):
+        JaxC3Plus(setup.mpc, C3Options(stopping="residual"))
+    with pytest.raises(ValueError, match="precision"):
+        JaxC3Plus(setup.mpc, precision="float16")
+    if not gpu_available():
+        with pytest.raises(JaxUnavailable, match="no GPU visible"):
+            JaxC3Plus(setup.mpc, device="gpu")
