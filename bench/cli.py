@@ -122,7 +122,7 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
                           projection=args.projection, rho_schedule=args.rho_schedule,
                           admm_iterations=args.iterations, model_l=args.model_l,
                           samples=args.samples, weighting=not args.no_weighting,
-                          seed=args.seed)
+                          seed=args.seed, feedback=args.feedback)
     trajectory, records, outcome = run_closed_loop(spec, config, args.duration,
                                                    progress=not args.quiet)
     scene = build_scene(config=config)
@@ -202,7 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     solvers.set_defaults(handler=cmd_solvers)
 
     loop = sub.add_parser("closed-loop", help="drive the MuJoCo cube with C3 / C3+")
-    loop.add_argument("--controller", choices=("c3", "c3plus", "c3plus-robust"),
+    loop.add_argument("--controller", choices=("c3", "c3plus", "c3plus-robust", "c3plus-fast",
+                                               "c3plus-fast-robust"),
                       default="c3plus")
     loop.add_argument("--qp-backend", default="clarabel", help="registry name of the QP solver")
     loop.add_argument("--projection", default="scip", help="C3's MIQP projection backend")
@@ -212,6 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("--samples", type=int, default=16, help="robust variant: sampled models")
     loop.add_argument("--no-weighting", action="store_true",
                       help="robust variant: uniform sample weights")
+    loop.add_argument("--feedback", action="store_true",
+                      help="low-level PD tracking of the plan's ball motion between steps")
     loop.add_argument("--model-l", type=float, default=0.29, help="cube side of the model")
     loop.add_argument("--duration", type=float, default=2.0, help="seconds of simulation")
     loop.add_argument("--seed", type=int, default=0)

@@ -220,7 +220,9 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
         scalars["wall_time"] = wall
         records.append(StepRecord(t, state.copy(), u.copy(), lcs_time, solve_time, ok,
                                   nan_count, scalars))
-        state = plant.step(u, dt)
+        law = info.get("control_law") if ok else None
+        state = plant.step_with(lambda x, s, u=u, law=law: law(x, s, u), dt) if law \
+            else plant.step(u, dt)
         states.append(state)
         inputs.append(u)
         gaps.append(cube_geometry(scene, state)["ball_gap"])
@@ -261,7 +263,10 @@ def angle_trajectory(trajectory: Trajectory, scene: Scene) -> np.ndarray:
 
 
 # --- controllers in the loop ------------------------------------------------------------------
-CONTROLLERS: tuple[str, ...] = ("c3", "c3plus", "c3plus-robust")
+CONTROLLERS: tuple[str, ...] = ("c3", "c3plus", "c3plus-robust", "c3plus-fast",
+                                 "c3plus-fast-robust")
+ROBUST_CONTROLLERS: tuple[str, ...] = ("c3plus-robust", "c3plus-fast-robust")
+FAST_CONTROLLERS: tuple[str, ...] = ("c3plus-fast", "c3plus-fast-robust")
 
 
 @dataclass(frozen=True)
@@ -271,8 +276,10 @@ class ControllerSpec:
     Attributes
     ----------
     controller
-        ``c3`` (MIQP projection), ``c3plus`` (closed-form projection) or ``c3plus-robust``
-        (``samples`` models with ``l ~ U[l_low, l_high]`` sharing their inputs).
+        ``c3`` (MIQP projection), ``c3plus`` (closed-form projection), ``c3plus-robust``
+        (``samples`` models with ``l ~ U[l_low, l_high]`` sharing their inputs, one stacked
+        QP), or the fast path ``c3plus-fast`` / ``c3plus-fast-robust`` (batched Riccati QP
+        steps and batched LCS build, :mod:`solvers.fast`; ``qp_backend`` is ignored).
     qp_backend, projection
         Registry names of the QP-step solver and of C3's MIQP projection.
     rho_schedule
@@ -288,6 +295,13 @@ class ControllerSpec:
         observations so far (seed section 3.3).
     seed
         Seed of the sampled sides.
+    feedback, feedback_kp, feedback_kd
+        Low-level feedback between control steps (the seed's "low-level PD controller"):
+        at every plant step ``u = u_0 + kp (p_ref - p) + kd (v_ref - v)`` on the ball, where
+        ``p_ref`` moves linearly from the measured ball position to the plan's ``x_1`` over
+        ``dt`` and ``v_ref`` is the plan's ``x_1`` ball velocity (weighted over samples).
+        Without it ``u_0`` is held for ``dt`` (zero-order hold). The seed's optimised gain
+        ``K`` regularised toward a PD law is not implemented.
     """
 
     controller: str = "c3plus"
@@ -301,6 +315,9 @@ class ControllerSpec:
     l_high: float = 0.33
     weighting: bool = True
     seed: int = 0
+    feedback: bool = False
+    feedback_kp: float = 100.0
+    feedback_kd: float = 20.0
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
@@ -316,10 +333,15 @@ class ControllerSpec:
         rng = np.random.default_rng(self.seed)
         return np.sort(rng.uniform(self.l_low, self.l_high, self.samples))
 
+    @property
+    def robust(self) -> bool:
+        return self.controller in ROBUST_CONTROLLERS
+
     def label(self) -> str:
-        extra = f"-n{self.samples}" if self.controller == "c3plus-robust" else \
-            f"-l{self.model_l:g}"
-        return f"{self.controller}-{self.qp_backend}-{self.rho_schedule}{extra}"
+        extra = f"-n{self.samples}" if self.robust else f"-l{self.model_l:g}"
+        backend = "riccati" if self.controller in FAST_CONTROLLERS else self.qp_backend
+        feedback = "-pd" if self.feedback else ""
+        return f"{self.controller}-{backend}-{self.rho_schedule}{extra}{feedback}"
 
 
 def make_policy(spec: ControllerSpec, config: Config) -> Policy:
@@ -333,8 +355,10 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
     from problems.mpc import build_mpc
     from solvers.c3 import C3Controller, C3Options, lcp_prediction_weights
 
-    robust = spec.controller == "c3plus-robust"
+    robust = spec.robust
     sides = spec.sample_sides() if robust else np.array([spec.model_l])
+    if spec.controller in FAST_CONTROLLERS:
+        return _fast_policy(spec, config, sides)
     scenes = [build_scene(l=float(side), config=config) for side in sides]
     mpc = build_mpc(scenes[0], config.mpc)
     options = C3Options(variant="c3" if spec.controller == "c3" else "c3plus",
@@ -371,7 +395,89 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
             values = trace.get(key)
             if values:
                 info[key] = float(values[-1])
+        if spec.feedback and solution.ok:
+            scene = scenes[0]
+            reference = planned_ball_state(
+                solution.delta, solution.weights, scene.nq, scene.ball_position_indices,
+                scene.nq - scene.nv)
+            info["control_law"] = pd_tracking_law(spec, scene, x, reference, config.mpc.dt)
         return solution.u, info
+
+    return policy
+
+
+def planned_ball_state(delta: np.ndarray, weights: np.ndarray | None, nq: int,
+                       ball: np.ndarray, nv_offset: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ball position and velocity of the plan's ``x_1`` (``delta`` is (S, T, step), ``x``
+    first in each step), averaged over samples with ``weights``."""
+    x1 = np.asarray(delta)[:, 1 if delta.shape[1] > 1 else 0, :]
+    p = np.full(x1.shape[0], 1.0 / x1.shape[0]) if weights is None else \
+        np.asarray(weights, dtype=float) / np.sum(weights)
+    mean = p @ x1
+    return mean[ball], mean[nq + ball - nv_offset]
+
+
+def pd_tracking_law(spec: ControllerSpec, scene: Scene, x: np.ndarray,
+                    reference: tuple[np.ndarray, np.ndarray], dt: float
+                    ) -> Callable[[np.ndarray, float, np.ndarray], np.ndarray]:
+    """``law(x, s, u0) = u0 + kp (p_ref(s) - p) + kd (v_ref - v)`` on the ball (see
+    :class:`ControllerSpec` ``feedback``)."""
+    ball = scene.ball_position_indices
+    ball_v = scene.nq + ball - (scene.nq - scene.nv)
+    start = x[ball].copy()
+    end, velocity = reference
+
+    def law(state: np.ndarray, s: float, u0: np.ndarray) -> np.ndarray:
+        target = start + (end - start) * min(1.0, s / dt)
+        return u0 + spec.feedback_kp * (target - state[ball]) \
+            + spec.feedback_kd * (velocity - state[ball_v])
+
+    return law
+
+
+def _fast_policy(spec: ControllerSpec, config: Config, sides: np.ndarray) -> Policy:
+    """The fast path in the loop: batched LCS build and batched Riccati C3+."""
+    from problems.lcs_batch import BatchLinearizer
+    from problems.mpc import build_mpc
+    from solvers.c3 import lcp_prediction_weights
+    from solvers.fast import FastC3Plus, FastC3PlusController, fast_options
+
+    linearizer = BatchLinearizer(sides, config)
+    mpc = build_mpc(build_scene(l=float(sides[0]), config=config), config.mpc)
+    options = fast_options(rho_schedule=spec.rho_schedule,
+                           admm_iterations=spec.admm_iterations)
+    controller = FastC3PlusController(FastC3Plus(mpc, options))
+    history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    previous: dict[str, np.ndarray] = {}
+
+    def policy(x: np.ndarray, t: float) -> tuple[np.ndarray, dict[str, Any]]:
+        u_prev = previous.get("u", np.zeros(2))
+        if "x" in previous:
+            history.append((previous["x"], u_prev, x.copy()))
+        start = time.perf_counter()
+        lcs = linearizer.linearize(x, u_prev, config.mpc.dt)
+        lcs_time = time.perf_counter() - start
+        start = time.perf_counter()
+        weights = None
+        if spec.robust and spec.weighting:
+            weights = lcp_prediction_weights(lcs.samples(), history[-5:])
+        weight_time = time.perf_counter() - start
+        solution = controller.step(lcs, x, weights)
+        solve_time = time.perf_counter() - start
+        previous["x"], previous["u"] = x.copy(), np.asarray(solution.u, dtype=float).copy()
+        info: dict[str, Any] = {"lcs_time": lcs_time, "solve_time": solve_time,
+                                "weight_time": weight_time, "ok": solution.ok,
+                                "iterations": solution.iterations,
+                                "nan_count": 0 if solution.ok else 1}
+        if solution.consensus_residual:
+            info["consensus_residual"] = float(solution.consensus_residual[-1])
+        if spec.feedback and solution.ok:
+            scene = linearizer.scene
+            reference = planned_ball_state(
+                solution.delta, solution.weights, scene.nq, scene.ball_position_indices,
+                scene.nq - scene.nv)
+            info["control_law"] = pd_tracking_law(spec, scene, x, reference, config.mpc.dt)
+        return np.asarray(solution.u, dtype=float), info
 
     return policy
 

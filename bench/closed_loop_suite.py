@@ -11,9 +11,9 @@ written atomically to ``results/closed_loop/<suite>/cells/<case>/`` (``summary.j
 Suites (:data:`CLOSED_LOOP_SUITES`):
 
 * ``quick``: C3+ with each of four QP backends (the seed's setting: shrunk model ``l = 0.29``,
-  geometric rho, 10 ADMM iterations), the seed's ablations (true-size model ``l = 0.30``; the
-  adaptive and residual-balancing rho schedules) and the robust variant with 16 samples
-  (``l ~ U[0.27, 0.33]``, LCP-error weighting) with and without weighting;
+  geometric rho, 10 ADMM iterations) and with the true-size model, the robust variant with 16
+  samples (``l ~ U[0.27, 0.33]``) as one stacked QP with and without LCP weighting, and the
+  seed's ablation (:func:`seed_ablation`) on the fast path;
 * ``full``: ``quick`` over seeds 0-2, plus C3 with its MIQP projection and more QP backends.
 
 The sweep (:func:`sweep_cases`) crosses ``dt`` x rho schedule x ``Q_box`` x model ``l`` for C3+
@@ -21,10 +21,11 @@ and reports the failure-mode label of every combination as a grid.
 
 Schema of ``results.parquet`` (one row per case): ``case``, ``group``, ``controller``,
 ``qp_backend``, ``projection``, ``rho_schedule``, ``model_l``, ``samples``, ``weighting``,
-``dt``, ``q_cube_pose``, ``seed``, ``duration``, ``success``, ``angle_error`` (rad, at the end),
-``final_angle`` (rad), ``failure_mode`` (0-5), ``failure_label``, ``failure_reason``,
-``median_step_time``, ``p95_step_time``, ``median_lcs_time``, ``median_solve_time`` (s),
-``nan_count``, ``fallback_count``, ``steps``, ``error`` (why a case produced no run, else '').
+``feedback``, ``dt``, ``q_cube_pose``, ``seed``, ``duration``, ``success``, ``angle_error``
+(rad, at the end), ``final_angle`` (rad), ``failure_mode`` (0-5), ``failure_label``,
+``failure_reason``, ``median_step_time``, ``p95_step_time``, ``median_lcs_time``,
+``median_solve_time`` (s), ``nan_count``, ``fallback_count``, ``steps``, ``error`` (why a
+case produced no run, else '').
 """
 
 from __future__ import annotations
@@ -109,6 +110,26 @@ FULL_BACKENDS: tuple[str, ...] = (*QUICK_BACKENDS, "proxqp_sparse", "daqp", "kkt
                                   "casadi_hpipm")
 
 
+def seed_ablation() -> list[tuple[str, ControllerSpec]]:
+    """The seed's ablation (its bar plot): the full robust method and one part removed each.
+
+    Full: robust C3+ (16 samples ``l ~ U[0.27, 0.33]``, LCP-error weighting) with low-level
+    feedback, on the fast path. Removed in turn: feedback, the samples (one model, the shrunk
+    ``l = 0.29``), the samples and the shrunk model (one model of the true ``l = 0.30``), the
+    weighting; and the two other rho schedules.
+    """
+    full = ControllerSpec(controller="c3plus-fast-robust", feedback=True)
+    return [
+        ("full", full),
+        ("no-feedback", replace(full, feedback=False)),
+        ("no-samples", replace(full, controller="c3plus-fast", model_l=0.29)),
+        ("no-shrunk-model", replace(full, controller="c3plus-fast", model_l=0.30)),
+        ("no-weighting", replace(full, weighting=False)),
+        ("rho-adaptive", replace(full, rho_schedule="adaptive")),
+        ("rho-residual-balancing", replace(full, rho_schedule="residual_balancing")),
+    ]
+
+
 def _suite_cases(backends: Sequence[str], seeds: Sequence[int], with_c3: bool) -> list[Case]:
     cases: list[Case] = []
     for seed in seeds:
@@ -117,15 +138,15 @@ def _suite_cases(backends: Sequence[str], seeds: Sequence[int], with_c3: bool) -
             spec = _c3plus(backend)
             cases.append(Case(f"{spec.label()}{tag}", "backends", spec, seed=seed))
         for spec, group in (
-            (_c3plus("clarabel", model_l=0.30), "ablation"),
-            (_c3plus("clarabel", rho_schedule="adaptive"), "ablation"),
-            (_c3plus("clarabel", rho_schedule="residual_balancing"), "ablation"),
+            (_c3plus("clarabel", model_l=0.30), "backends"),
             (ControllerSpec(controller="c3plus-robust", qp_backend="clarabel"), "robust"),
             (ControllerSpec(controller="c3plus-robust", qp_backend="clarabel",
                             weighting=False), "robust"),
         ):
             name = spec.label() + ("-uniform" if not spec.weighting else "") + tag
             cases.append(Case(name, group, spec, seed=seed))
+        for label, spec in seed_ablation():
+            cases.append(Case(f"ablation-{label}{tag}", "ablation", spec, seed=seed))
         if with_c3:
             for projection in ("gurobi", "scip"):
                 spec = ControllerSpec(controller="c3", qp_backend="clarabel",
@@ -158,12 +179,14 @@ def case_row(case: Case) -> dict[str, Any]:
     """The identifying columns of a case."""
     spec = case.spec
     return {"case": case.name, "group": case.group, "controller": spec.controller,
-            "qp_backend": spec.qp_backend,
+            "qp_backend": "riccati" if spec.controller.startswith("c3plus-fast")
+            else spec.qp_backend,
             "projection": spec.projection if spec.controller == "c3" else "closed_form",
             "rho_schedule": spec.rho_schedule,
-            "model_l": spec.model_l if spec.controller != "c3plus-robust" else float("nan"),
-            "samples": spec.samples if spec.controller == "c3plus-robust" else 1,
-            "weighting": spec.weighting if spec.controller == "c3plus-robust" else False,
+            "model_l": float("nan") if spec.robust else spec.model_l,
+            "samples": spec.samples if spec.robust else 1,
+            "weighting": spec.weighting if spec.robust else False,
+            "feedback": spec.feedback,
             "dt": case.dt, "q_cube_pose": case.q_cube_pose, "seed": case.seed,
             "duration": case.duration}
 

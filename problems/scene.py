@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -336,6 +337,23 @@ class Plant:
             raise ValueError(f"duration {duration} is not a multiple of the plant step {step}")
         self.data.ctrl[:] = u
         for _ in range(count):
+            mujoco.mj_step(self.scene.model, self.data)
+        return self.state()
+
+    def step_with(self, control: Callable[[np.ndarray, float], np.ndarray],
+                  duration: float) -> np.ndarray:
+        """Step ``duration`` seconds with ``u = control(x, s)`` recomputed every plant step
+        (``s`` = seconds since the call), clipped to the force limit; return ``x``."""
+        if not (math.isfinite(duration) and duration > 0):
+            raise ValueError(f"duration must be a finite number > 0, got {duration!r}")
+        step = float(self.scene.model.opt.timestep)
+        count = round(duration / step)
+        if abs(count * step - duration) > 1e-9 * max(1.0, duration):
+            raise ValueError(f"duration {duration} is not a multiple of the plant step {step}")
+        limit = self.scene.config.scene.force_limit
+        for k in range(count):
+            u = self.scene.check_input(control(self.state(), k * step))
+            self.data.ctrl[:] = np.clip(u, -limit, limit)
             mujoco.mj_step(self.scene.model, self.data)
         return self.state()
 

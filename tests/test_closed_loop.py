@@ -129,3 +129,50 @@ def test_closed_loop_command_writes_records(tmp_path, capsys) -> None:
     text = capsys.readouterr().out
     assert "success" in text and "control step" in text
     assert (out / "steps.csv").exists() and (out / "summary.json").exists()
+
+
+def test_fast_robust_controller_runs_in_the_loop() -> None:
+    from bench.closed_loop import ControllerSpec, run_closed_loop
+
+    spec = ControllerSpec(controller="c3plus-fast-robust", samples=4)
+    trajectory, _, outcome = run_closed_loop(spec, CONFIG, duration=0.3)
+    assert outcome.steps == 6 and outcome.fallback_count == 0
+    assert np.all(np.isfinite(trajectory.states))
+    assert spec.label() == "c3plus-fast-robust-riccati-geometric-n4"
+
+
+def test_fast_and_reference_controllers_apply_the_same_first_input() -> None:
+    """n = 1: the batched Riccati C3+ and the reference C3+ with Clarabel agree."""
+    from bench.closed_loop import ControllerSpec, make_policy
+
+    x0 = home_state(SCENE)
+    fast, _ = make_policy(ControllerSpec(controller="c3plus-fast"), CONFIG)(x0, 0.0)
+    reference, _ = make_policy(ControllerSpec(qp_backend="clarabel"), CONFIG)(x0, 0.0)
+    assert np.allclose(fast, reference, rtol=1e-6, atol=1e-6)
+
+
+def test_pd_tracking_law_interpolates_the_plan() -> None:
+    from bench.closed_loop import ControllerSpec, pd_tracking_law
+
+    spec = ControllerSpec(feedback=True, feedback_kp=100.0, feedback_kd=20.0)
+    x = home_state(SCENE)
+    end, velocity = x[3:5] + np.array([0.01, 0.002]), np.array([0.2, 0.04])
+    law = pd_tracking_law(spec, SCENE, x, (end, velocity), 0.05)
+    u0 = np.array([1.0, -1.0])
+    # at s = 0 the reference is the measured position: only the velocity term acts
+    assert np.allclose(law(x, 0.0, u0), u0 + 20.0 * velocity)
+    # half way the position reference is half way to the plan's x_1
+    assert np.allclose(law(x, 0.025, u0), u0 + 100.0 * 0.5 * (end - x[3:5]) + 20.0 * velocity)
+    moved = x.copy()
+    moved[3:5], moved[8:10] = end, velocity
+    assert np.allclose(law(moved, 0.05, u0), u0)  # on the plan: no correction
+
+
+def test_feedback_changes_the_applied_forces() -> None:
+    from bench.closed_loop import ControllerSpec, run_closed_loop
+
+    plain, _, _ = run_closed_loop(ControllerSpec(controller="c3plus-fast"), CONFIG, 0.25)
+    tracked, _, outcome = run_closed_loop(ControllerSpec(controller="c3plus-fast",
+                                                         feedback=True), CONFIG, 0.25)
+    assert outcome.fallback_count == 0
+    assert np.max(np.abs(plain.states[-1] - tracked.states[-1])) > 1e-6
