@@ -153,3 +153,21 @@ def test_registry_table_lists_real_backends() -> None:
     assert rows["test_missing"].available is False
     assert "a_package_that_is_not_installed" in rows["test_missing"].reason
     assert registry.module_errors() == {}
+
+
+def test_unbounded_problem_is_never_a_success() -> None:
+    """min -z_0 with z_0 free (P = 0 on it): every real QP solver must fail or be caught."""
+    problem = Problem("unbounded", "lcp", P=np.diag([0.0, 1.0]), q=np.array([-1.0, 0.0]),
+                      lb=np.array([-np.inf, 0.0]))
+    ran = 0
+    for name in ("clarabel", "osqp", "proxqp_dense", "piqp"):
+        backend = registry.backends().get(name)
+        if backend is None or not backend.availability()[0]:
+            continue
+        ran += 1
+        result = registry.solve(name, problem, Settings(time_limit=5.0))
+        if result.found:
+            figures = residuals(problem, result.x, result.y, result.z, result.z_box)
+            assert figures.dual_relative > 1e-3, name  # the success check rejects it
+    if ran == 0:
+        pytest.skip("no real QP backend installed in this checkout")
