@@ -21,7 +21,10 @@ from solvers.fast import FastC3Plus, RiccatiOptions
 from solvers.fast_jax import (
     JaxC3Plus,
     JaxUnavailable,
+    back_substitution,
+    cholesky_factor,
     cholesky_solve,
+    forward_substitution,
     gpu_available,
     jax_modules,
 )
@@ -61,6 +64,26 @@ def test_cholesky_solve_matches_numpy() -> None:
     R = rng.normal(size=(5, 8, 3))
     got = np.asarray(cholesky_solve(jnp, jnp.asarray(Q), jnp.asarray(R)))
     np.testing.assert_allclose(got, np.linalg.solve(Q, R), rtol=1e-9, atol=1e-9)
+
+
+def test_factor_and_substitutions_match_numpy() -> None:
+    _, jnp, _ = jax_modules()
+    rng = np.random.default_rng(1)
+    Q = rng.normal(size=(5, 8, 8))
+    Q = Q @ np.swapaxes(Q, -1, -2) + 0.1 * np.eye(8)
+    R = rng.normal(size=(5, 8, 11))
+    y = rng.normal(size=(5, 8))
+    L = np.asarray(cholesky_factor(jnp, jnp.asarray(Q)))
+    np.testing.assert_allclose(L, np.linalg.cholesky(Q), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(forward_substitution(jnp, jnp.asarray(L),
+                                                               jnp.asarray(R))),
+                               np.linalg.solve(L, R), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(back_substitution(jnp, jnp.asarray(L),
+                                                            jnp.asarray(y))),
+                               np.linalg.solve(np.swapaxes(L, -1, -2), y[..., None])[..., 0],
+                               rtol=1e-9, atol=1e-9)
+    not_spd = -np.eye(8)[None]
+    assert np.all(np.isnan(np.asarray(cholesky_factor(jnp, jnp.asarray(not_spd)))[0, :, 0]))
 
 
 def test_single_sample_float64_matches_numpy(setup: SimpleNamespace) -> None:
