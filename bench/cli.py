@@ -113,7 +113,13 @@ def cmd_solvers(args: argparse.Namespace) -> int:
 
 
 def cmd_closed_loop(args: argparse.Namespace) -> int:
-    from bench.closed_loop import ControllerSpec, render_run, run_closed_loop, write_run
+    from bench.closed_loop import (
+        ControllerSpec,
+        render_run,
+        run_closed_loop,
+        run_summary,
+        write_run,
+    )
     from problems.config import load_config
     from problems.scene import RenderUnavailable, build_scene
 
@@ -127,7 +133,7 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
                                                    progress=not args.quiet)
     scene = build_scene(config=config)
     out = Path(args.out) if args.out else Path("results") / "closed_loop" / "runs" / spec.label()
-    write_run(out, spec, trajectory, records, outcome, scene)
+    write_run(out, trajectory, records, scene, run_summary(spec, trajectory, outcome))
     print(f"controller        {spec.label()}")
     print(f"success           {'yes' if outcome.success else 'no'}")
     print(f"angle error       {outcome.angle_error:.4f} rad at t = {args.duration:g} s "
@@ -142,7 +148,7 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
     print(f"records           {out}")
     if args.render:
         try:
-            path = render_run(trajectory, scene, args.render, config.mpc.dt)
+            path = render_run(trajectory.states, scene, args.render, config.mpc.dt)
             print(f"animation         {path}")
         except RenderUnavailable as error:
             print(f"animation skipped: {error}", file=sys.stderr)

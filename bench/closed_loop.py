@@ -348,60 +348,93 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
     """A policy that linearises the controller's model(s) at the measured state and runs C3.
 
     The LCS is built at ``(x, u_prev)`` every control step (``lcs_time``); the controller warm
-    starts from its previous step. The robust variant keeps the observed transitions
-    ``(x_t, u_t, x_{t+1})`` to weight its samples.
+    starts from its previous step. The robust variants weight their samples by the one-step
+    LCP prediction error on the last five observed transitions ``(x_t, u_t, x_{t+1})``. The
+    reference controller (:mod:`solvers.c3`) and the fast path (:mod:`solvers.fast`, batched
+    LCS build) differ only in how the models are built and the step is solved.
     """
-    from problems.lcs import linearize
     from problems.mpc import build_mpc
-    from solvers.c3 import C3Controller, C3Options, lcp_prediction_weights
+    from solvers.c3 import lcp_prediction_weights
 
-    robust = spec.robust
-    sides = spec.sample_sides() if robust else np.array([spec.model_l])
+    sides = spec.sample_sides() if spec.robust else np.array([spec.model_l])
+    scene = build_scene(l=float(sides[0]), config=config)
+    mpc = build_mpc(scene, config.mpc)
+    dt = config.mpc.dt
     if spec.controller in FAST_CONTROLLERS:
-        return _fast_policy(spec, config, sides)
-    scenes = [build_scene(l=float(side), config=config) for side in sides]
-    mpc = build_mpc(scenes[0], config.mpc)
-    options = C3Options(variant="c3" if spec.controller == "c3" else "c3plus",
-                        qp_backend=spec.qp_backend, projection_backend=spec.projection,
-                        rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
-                        keep_iterates=False)
-    controller = C3Controller(options)
+        from problems.lcs_batch import BatchLinearizer
+        from solvers.fast import FastC3Plus, FastC3PlusController, fast_options
+
+        linearizer = BatchLinearizer(sides, config)
+        fast = FastC3PlusController(FastC3Plus(mpc, fast_options(
+            rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations)))
+
+        def models_at(x: np.ndarray, u: np.ndarray) -> Any:
+            return linearizer.linearize(x, u, dt)
+
+        def samples_of(models: Any) -> list[Any]:
+            return models.samples()
+
+        def solve(models: Any, weights: np.ndarray | None, x: np.ndarray) -> Any:
+            return fast.step(models, x, weights)
+    else:
+        from problems.lcs import linearize
+        from solvers.c3 import C3Controller, C3Options
+
+        scenes = [scene] + [build_scene(l=float(side), config=config) for side in sides[1:]]
+        reference = C3Controller(C3Options(
+            variant="c3" if spec.controller == "c3" else "c3plus",
+            qp_backend=spec.qp_backend, projection_backend=spec.projection,
+            rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
+            keep_iterates=False))
+
+        def models_at(x: np.ndarray, u: np.ndarray) -> Any:
+            return [linearize(model, x, u, dt) for model in scenes]
+
+        def samples_of(models: Any) -> list[Any]:
+            return models
+
+        def solve(models: Any, weights: np.ndarray | None, x: np.ndarray) -> Any:
+            if spec.robust:
+                return reference.step_robust(models, weights, mpc, x)
+            return reference.step(models[0], mpc, x)
+
     history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     previous: dict[str, np.ndarray] = {}
 
     def policy(x: np.ndarray, t: float) -> tuple[np.ndarray, dict[str, Any]]:
-        u_prev = previous.get("u", np.zeros(scenes[0].nu))
+        u_prev = previous.get("u", np.zeros(scene.nu))
         if "x" in previous:
             history.append((previous["x"], u_prev, x.copy()))
         start = time.perf_counter()
-        models = [linearize(scene, x, u_prev, config.mpc.dt) for scene in scenes]
+        models = models_at(x, u_prev)
         lcs_time = time.perf_counter() - start
         start = time.perf_counter()
-        if robust:
-            weights = lcp_prediction_weights(models, history[-5:]) if spec.weighting \
-                else None
-            solution = controller.step_robust(models, weights, mpc, x)
-        else:
-            solution = controller.step(models[0], mpc, x)
+        weights = None
+        if spec.robust and spec.weighting:
+            weights = lcp_prediction_weights(samples_of(models), history[-5:])
+        weight_time = time.perf_counter() - start
+        solution = solve(models, weights, x)
         solve_time = time.perf_counter() - start
-        previous["x"], previous["u"] = x.copy(), solution.u.copy()
-        trace = solution.trace.series() if solution.trace is not None else {}
-        info: dict[str, Any] = {"lcs_time": lcs_time, "solve_time": solve_time,
-                                "ok": solution.ok, "iterations": solution.iterations,
-                                "nan_count": 0 if solution.ok or np.all(np.isfinite(
-                                    solution.u_raw if solution.u_raw is not None else 0.0))
-                                else 1}
-        for key in ("consensus_residual", "complementarity_delta"):
-            values = trace.get(key)
-            if values:
-                info[key] = float(values[-1])
+        u = np.asarray(solution.u, dtype=float)
+        previous["x"], previous["u"] = x.copy(), u.copy()
+        raw = solution.u_raw
+        info: dict[str, Any] = {
+            "lcs_time": lcs_time, "solve_time": solve_time, "weight_time": weight_time,
+            "ok": solution.ok, "iterations": solution.iterations,
+            "nan_count": int(not solution.ok and raw is not None
+                             and not np.all(np.isfinite(raw)))}
+        trace = getattr(solution, "trace", None)
+        residuals = trace.consensus_residual if trace is not None \
+            else solution.consensus_residual
+        if residuals:
+            info["consensus_residual"] = float(residuals[-1])
+        if trace is not None and trace.complementarity_delta:
+            info["complementarity_delta"] = float(trace.complementarity_delta[-1])
         if spec.feedback and solution.ok:
-            scene = scenes[0]
-            reference = planned_ball_state(
-                solution.delta, solution.weights, scene.nq, scene.ball_position_indices,
-                scene.nq - scene.nv)
-            info["control_law"] = pd_tracking_law(spec, scene, x, reference, config.mpc.dt)
-        return solution.u, info
+            plan = planned_ball_state(solution.delta, solution.weights, scene.nq,
+                                      scene.ball_position_indices, scene.nq - scene.nv)
+            info["control_law"] = pd_tracking_law(spec, scene, x, plan, dt)
+        return u, info
 
     return policy
 
@@ -433,53 +466,6 @@ def pd_tracking_law(spec: ControllerSpec, scene: Scene, x: np.ndarray,
             + spec.feedback_kd * (velocity - state[ball_v])
 
     return law
-
-
-def _fast_policy(spec: ControllerSpec, config: Config, sides: np.ndarray) -> Policy:
-    """The fast path in the loop: batched LCS build and batched Riccati C3+."""
-    from problems.lcs_batch import BatchLinearizer
-    from problems.mpc import build_mpc
-    from solvers.c3 import lcp_prediction_weights
-    from solvers.fast import FastC3Plus, FastC3PlusController, fast_options
-
-    linearizer = BatchLinearizer(sides, config)
-    mpc = build_mpc(build_scene(l=float(sides[0]), config=config), config.mpc)
-    options = fast_options(rho_schedule=spec.rho_schedule,
-                           admm_iterations=spec.admm_iterations)
-    controller = FastC3PlusController(FastC3Plus(mpc, options))
-    history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    previous: dict[str, np.ndarray] = {}
-
-    def policy(x: np.ndarray, t: float) -> tuple[np.ndarray, dict[str, Any]]:
-        u_prev = previous.get("u", np.zeros(2))
-        if "x" in previous:
-            history.append((previous["x"], u_prev, x.copy()))
-        start = time.perf_counter()
-        lcs = linearizer.linearize(x, u_prev, config.mpc.dt)
-        lcs_time = time.perf_counter() - start
-        start = time.perf_counter()
-        weights = None
-        if spec.robust and spec.weighting:
-            weights = lcp_prediction_weights(lcs.samples(), history[-5:])
-        weight_time = time.perf_counter() - start
-        solution = controller.step(lcs, x, weights)
-        solve_time = time.perf_counter() - start
-        previous["x"], previous["u"] = x.copy(), np.asarray(solution.u, dtype=float).copy()
-        info: dict[str, Any] = {"lcs_time": lcs_time, "solve_time": solve_time,
-                                "weight_time": weight_time, "ok": solution.ok,
-                                "iterations": solution.iterations,
-                                "nan_count": 0 if solution.ok else 1}
-        if solution.consensus_residual:
-            info["consensus_residual"] = float(solution.consensus_residual[-1])
-        if spec.feedback and solution.ok:
-            scene = linearizer.scene
-            reference = planned_ball_state(
-                solution.delta, solution.weights, scene.nq, scene.ball_position_indices,
-                scene.nq - scene.nv)
-            info["control_law"] = pd_tracking_law(spec, scene, x, reference, config.mpc.dt)
-        return np.asarray(solution.u, dtype=float), info
-
-    return policy
 
 
 def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
@@ -532,30 +518,45 @@ def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scen
     return pd.DataFrame(rows)
 
 
-def write_run(out_dir: str | Path, spec: ControllerSpec, trajectory: Trajectory,
-              records: list[StepRecord], outcome: ClosedLoopOutcome, scene: Scene) -> Path:
-    """Write ``steps.csv``/``steps.parquet`` and ``summary.json`` of a run into ``out_dir``."""
+def write_run(out_dir: str | Path, trajectory: Trajectory, records: list[StepRecord],
+              scene: Scene, summary: dict[str, Any]) -> Path:
+    """Write a run into ``out_dir``: ``steps.parquet``/``steps.csv`` (:func:`records_frame`),
+    ``states.npy`` (the plant states at every control step) and, last, ``summary.json``
+    (whose presence marks a finished run). Every file goes through a temporary and a rename.
+    """
     import json
-    from dataclasses import asdict
 
     from problems.instance import atomic_write_bytes
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     frame = records_frame(trajectory, records, scene)
-    frame.to_parquet(out / "steps.parquet", index=False)
-    frame.to_csv(out / "steps.csv", index=False)
-    summary = {"spec": asdict(spec), "outcome": asdict(outcome),
-               "failure_label": outcome.failure_label,
-               "final_state": trajectory.states[-1].tolist()}
-    atomic_write_bytes(out / "summary.json",
-                       (json.dumps(summary, indent=2, sort_keys=True) + "\n").encode())
+    for name, write in (("steps.parquet", lambda p: frame.to_parquet(p, index=False)),
+                        ("steps.csv", lambda p: frame.to_csv(p, index=False)),
+                        ("states.npy", lambda p: np.save(p, trajectory.states))):
+        temporary = out / f".{name}.tmp"
+        with temporary.open("wb") as handle:
+            write(handle)
+        temporary.replace(out / name)
+    atomic_write_bytes(out / "summary.json", (json.dumps(
+        summary, indent=2, sort_keys=True, default=float) + "\n").encode())
     return out
 
 
-def render_run(trajectory: Trajectory, scene: Scene, path: str | Path, dt: float) -> Path:
-    """Animate a run as a GIF (raises ``RenderUnavailable`` without an off-screen GL)."""
+def run_summary(spec: ControllerSpec, trajectory: Trajectory,
+                outcome: ClosedLoopOutcome) -> dict[str, Any]:
+    """The ``summary.json`` of a single ``c3bench closed-loop`` run."""
+    from dataclasses import asdict
+
+    return {"spec": asdict(spec), "outcome": asdict(outcome),
+            "failure_label": outcome.failure_label,
+            "final_state": trajectory.states[-1].tolist()}
+
+
+def render_run(states: np.ndarray, scene: Scene, path: str | Path, dt: float) -> Path:
+    """Animate a run's states (one per control step) as a GIF (raises ``RenderUnavailable``
+    without an off-screen GL)."""
     from problems.scene import render_frames, save_gif
 
-    frames = render_frames(scene, trajectory.states, width=480, height=360)
+    frames = render_frames(scene, states, width=480, height=360)
     return save_gif(frames, path, dt)

@@ -43,9 +43,9 @@ import pandas as pd
 
 from bench.closed_loop import (
     ControllerSpec,
-    records_frame,
     render_run,
     run_closed_loop,
+    write_run,
 )
 from problems.config import Config, load_config
 from problems.instance import atomic_write_bytes
@@ -192,7 +192,7 @@ def case_row(case: Case) -> dict[str, Any]:
 
 
 def run_case(case: Case, cell_dir: str) -> dict[str, Any]:
-    """Run one case and write its cell (``summary.json``, ``steps.parquet``) atomically.
+    """Run one case and write its cell (:func:`bench.closed_loop.write_run`, summary = the row).
 
     A case whose controller cannot be built or crashes outside the control loop becomes a row
     with ``error`` set; it never stops the suite.
@@ -202,7 +202,6 @@ def run_case(case: Case, cell_dir: str) -> dict[str, Any]:
     config = case.config(base)
     row["dt"] = config.mpc.dt
     row["q_cube_pose"] = config.mpc.q_cube_pose
-    out = Path(cell_dir) / case.name
     try:
         trajectory, records, outcome = run_closed_loop(case.spec, config, case.duration,
                                                        x0=case.initial_state(config))
@@ -210,23 +209,10 @@ def run_case(case: Case, cell_dir: str) -> dict[str, Any]:
         row.update({"success": False, "error": f"{type(error).__name__}: {error}",
                     "failure_mode": -1, "failure_label": "error"})
         return row
-    out.mkdir(parents=True, exist_ok=True)
-    frame = records_frame(trajectory, records, build_scene(config=config))
-    frame["plant_time"] = trajectory.times[:-1]
-    temporary = out / ".steps.parquet.tmp"
-    frame.to_parquet(temporary, index=False)
-    temporary.replace(out / "steps.parquet")
-    final = pd.DataFrame({"time": trajectory.times, "cube_angle": [
-        build_scene(config=config).cube_angle(x) for x in trajectory.states]})
-    temporary = out / ".angles.parquet.tmp"
-    final.to_parquet(temporary, index=False)
-    temporary.replace(out / "angles.parquet")
     row.update(asdict(outcome))
     row["failure_label"] = outcome.failure_label
     row["error"] = ""
-    np.save(out / "states.npy", trajectory.states)
-    atomic_write_bytes(out / "summary.json",
-                       (json.dumps(row, indent=2, sort_keys=True, default=float) + "\n").encode())
+    write_run(Path(cell_dir) / case.name, trajectory, records, build_scene(config=config), row)
     return row
 
 
@@ -320,14 +306,33 @@ def _table(frame: pd.DataFrame, columns: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
-def plot_error_bars(frame: pd.DataFrame, path: Path, target: float) -> Path:
-    """Cube angle error at the end per configuration, coloured by success."""
+def _axes(size: tuple[float, float]) -> tuple[Any, Any]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axis = plt.subplots(figsize=(max(6.0, 0.55 * len(frame)), 4.2))
+    return plt.subplots(figsize=size)
+
+
+def _save(figure: Any, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def cell_states(directory: Path, name: str) -> np.ndarray | None:
+    """The plant states (one per control step) a finished case stored, or ``None``."""
+    path = directory / "cells" / name / "states.npy"
+    return np.load(path) if path.exists() else None
+
+
+def plot_error_bars(frame: pd.DataFrame, path: Path, target: float) -> Path:
+    """Cube angle error at the end per configuration, coloured by success."""
+    figure, axis = _axes((max(6.0, 0.55 * len(frame)), 4.2))
     errors = frame["angle_error"].fillna(target).to_numpy(dtype=float)
     colours = ["tab:green" if ok else "tab:red" for ok in frame["success"].fillna(False)]
     axis.bar(range(len(frame)), errors, color=colours)
@@ -341,44 +346,30 @@ def plot_error_bars(frame: pd.DataFrame, path: Path, target: float) -> Path:
     axis.set_ylabel("|theta(2 s) - theta*| (rad)")
     axis.set_title("Cube angle error after the run (green: success; mN: failure mode)")
     axis.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return _save(figure, path)
 
 
 def plot_angles(directory: Path, frame: pd.DataFrame, path: Path, target: float) -> Path:
-    """Cube angle against time for every case."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axis = plt.subplots(figsize=(8, 4.5))
-    for name in frame["case"]:
-        angles_path = directory / "cells" / name / "angles.parquet"
-        if not angles_path.exists():
+    """Cube angle against time for every case (from the stored states)."""
+    figure, axis = _axes((8, 4.5))
+    scene = build_scene()
+    for row in frame.itertuples():
+        states = cell_states(directory, row.case)
+        if states is None:
             continue
-        angles = pd.read_parquet(angles_path)
-        axis.plot(angles["time"], angles["cube_angle"], linewidth=1.2, label=name)
+        times = np.arange(len(states)) * float(row.dt)
+        axis.plot(times, [scene.cube_angle(x) for x in states], linewidth=1.2,
+                  label=row.case)
     axis.axhline(target, color="k", linestyle="--", linewidth=0.8, label="target")
     axis.set_xlabel("time (s)")
     axis.set_ylabel("cube angle theta (rad)")
     axis.set_title("Cube angle trajectories")
     axis.legend(fontsize=6, ncol=2)
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return _save(figure, path)
 
 
 def plot_step_times(directory: Path, frame: pd.DataFrame, path: Path) -> Path:
     """Distribution of the control-step wall time per case (log scale)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     data, labels = [], []
     for name in frame["case"]:
         steps_path = directory / "cells" / name / "steps.parquet"
@@ -387,7 +378,7 @@ def plot_step_times(directory: Path, frame: pd.DataFrame, path: Path) -> Path:
         steps = pd.read_parquet(steps_path)
         data.append(1e3 * steps["wall_time"].to_numpy())
         labels.append(name)
-    figure, axis = plt.subplots(figsize=(max(6.0, 0.55 * len(labels)), 4.2))
+    figure, axis = _axes((max(6.0, 0.55 * len(labels)), 4.2))
     if data:
         axis.boxplot(data, showfliers=True)
         axis.set_xticks(range(1, len(labels) + 1))
@@ -399,10 +390,7 @@ def plot_step_times(directory: Path, frame: pd.DataFrame, path: Path) -> Path:
     axis.set_ylabel("control-step wall time (ms)")
     axis.set_title("Control-step time (LCS build + controller), one BLAS thread")
     axis.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return _save(figure, path)
 
 
 def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
@@ -466,22 +454,17 @@ def _animation_section(directory: Path, frame: pd.DataFrame, config: Config) -> 
     if not len(successes):
         return ["## Animation", "", "No successful run to animate.", ""]
     name = str(successes.iloc[0]["case"])
-    states = np.load(directory / "cells" / name / "states.npy")
+    states = cell_states(directory, name)
+    if states is None:
+        return ["## Animation", "", f"No stored states for `{name}`.", ""]
     dt = float(successes.iloc[0].get("dt") or config.mpc.dt)
     try:
-        render_run(_trajectory_from(states, dt), build_scene(config=config),
+        render_run(states, build_scene(config=config),
                    directory / "figures" / "closed_loop_success.gif", dt)
     except RenderUnavailable as error:
         return ["## Animation", "", f"Not rendered: {error}", ""]
     return ["## Animation", "", "![run](figures/closed_loop_success.gif)", "",
             f"*`{name}`: one successful run, one frame per control step ({dt:g} s).*", ""]
-
-
-def _trajectory_from(states: np.ndarray, dt: float) -> Any:
-    from bench.closed_loop import Trajectory
-
-    times = np.arange(len(states)) * dt
-    return Trajectory(times, states, np.zeros((len(states) - 1, 2)), np.zeros(len(states)))
 
 
 def sweep_grid(frame: pd.DataFrame) -> str:
@@ -509,6 +492,3 @@ def sweep_grid(frame: pd.DataFrame) -> str:
     return ("Each cell: the failure-mode label (angle error at the end, rad).\n\n"
             + "\n".join(lines))
 
-
-def with_duration(cases: Iterable[Case], duration: float) -> list[Case]:
-    return [replace(case, duration=duration) for case in cases]
