@@ -122,7 +122,7 @@ def label_failure_mode(trajectory: Trajectory, scene: Scene, target_angle: float
     peak = int(np.argmax(angles))
     if angles[peak] > rules.whack_fraction * target_angle and \
             angles[-1] < angles[peak] - rules.fall_back:
-        gaps = np.array([g["ball_gap"] for g in geometry])[peak:]
+        gaps = trajectory.ball_gap[peak:]  # measured by simulate() at every state
         dt = float(np.median(np.diff(trajectory.times))) if len(states) > 1 else 0.0
         away = float(np.sum(gaps > rules.contact_gap) * dt)
         if away >= rules.lost_time:
