@@ -1,4 +1,4 @@
-"""The ``c3bench`` command line (also ``python -m bench``).
+"""The ``c3bench`` command line (also ``python -m c3bench``).
 
 Subcommands:
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from problems.suites import Capture
+from c3bench.problems.suites import Capture
 
 CAPTURE_QP_BACKEND = "clarabel"
 """QP solver of the controller runs whose iterates become suite instances (exact and
@@ -34,14 +34,14 @@ def _capture_for(name: str) -> Capture | None:
     """
     if name == "provisional":
         return None
-    from solvers.c3 import C3Options, controller_capture
+    from c3bench.solvers.c3 import C3Options, controller_capture
 
     return controller_capture(C3Options(variant="c3plus", qp_backend=CAPTURE_QP_BACKEND))
 
 
 def cmd_problems_generate(args: argparse.Namespace) -> int:
-    from problems.config import load_config
-    from problems.suites import SUITES, generate_suite
+    from c3bench.problems.config import load_config
+    from c3bench.problems.suites import SUITES, generate_suite
 
     if args.suite not in SUITES:
         print(f"error: unknown suite {args.suite!r}; known: {', '.join(SUITES)}",
@@ -60,7 +60,7 @@ def instance_table(directory: Path) -> pd.DataFrame:
 
     Sizes that vary within a family are shown as ``min-max``.
     """
-    from problems.instance import load_instances
+    from c3bench.problems.instance import load_instances
 
     rows = [p.summary() for p in load_instances(directory)]
     if not rows:
@@ -94,7 +94,7 @@ def cmd_problems_list(args: argparse.Namespace) -> int:
 
 
 def cmd_solvers(args: argparse.Namespace) -> int:
-    from solvers import registry
+    from c3bench.solvers import registry
 
     rows = [{
         "solver": info.name,
@@ -113,15 +113,15 @@ def cmd_solvers(args: argparse.Namespace) -> int:
 
 
 def cmd_closed_loop(args: argparse.Namespace) -> int:
-    from bench.closed_loop import (
+    from c3bench.bench.closed_loop import (
         ControllerSpec,
         render_run,
         run_closed_loop,
         run_summary,
         write_run,
     )
-    from problems.config import load_config
-    from problems.scene import RenderUnavailable, build_scene
+    from c3bench.problems.config import load_config
+    from c3bench.problems.scene import RenderUnavailable, build_scene
 
     config = load_config(args.config)
     spec = ControllerSpec(controller=args.controller, qp_backend=args.qp_backend,
@@ -156,7 +156,12 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
 
 
 def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
-    from bench.closed_loop_suite import CLOSED_LOOP_SUITES, RESULTS_DIR, run_cases, write_report
+    from c3bench.bench.closed_loop_suite import (
+        CLOSED_LOOP_SUITES,
+        RESULTS_DIR,
+        run_cases,
+        write_report,
+    )
 
     if args.suite not in CLOSED_LOOP_SUITES:
         print(f"error: unknown closed-loop suite {args.suite!r}; known: "
@@ -172,7 +177,7 @@ def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from bench.closed_loop_suite import RESULTS_DIR, run_cases, sweep_cases, write_report
+    from c3bench.bench.closed_loop_suite import RESULTS_DIR, run_cases, sweep_cases, write_report
 
     cases = sweep_cases(args.dt, args.rho_schedule, args.q_box, args.model_l, args.qp_backend)
     directory = Path(args.results) if args.results else RESULTS_DIR / "sweep"
@@ -187,6 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="c3bench",
         description="Benchmark solvers on the subproblems of contact-implicit MPC (C3 / C3+).")
+    from c3bench import __version__
+
+    parser.add_argument("--version", action="version", version=f"c3bench {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     problems = sub.add_parser("problems", help="generate and list subproblem instances")
@@ -250,14 +258,14 @@ def build_parser() -> argparse.ArgumentParser:
     loop_suite.set_defaults(handler=cmd_closed_loop_suite)
     sweep.set_defaults(handler=cmd_sweep)
 
-    from bench.perf import register_perf_command
+    from c3bench.bench.perf import register_perf_command
 
     register_perf_command(sub)
 
     try:
-        from bench.commands import register_commands
+        from c3bench.bench.commands import register_commands
     except ModuleNotFoundError as error:
-        if error.name != "bench.commands":
+        if error.name != "c3bench.bench.commands":
             raise
     else:
         register_commands(sub, capture=_capture_for("controller"))

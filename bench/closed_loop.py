@@ -1,7 +1,7 @@
 """Closed loop: a controller replans every ``dt`` from the measured MuJoCo state and drives the
 true plant (``l = 0.30``) with its first input held for ``dt`` (zero-order hold).
 
-Outcome metrics (SPEC.md section 5): cube angle error at the end, success, control-step wall
+Outcome metrics (docs/closed_loop.md): cube angle error at the end, success, control-step wall
 time (median, p95; LCS build and solve apart), NaN / fallback counts, and an automatic
 failure-mode label computed from the trajectory by :func:`label_failure_mode`.
 
@@ -32,9 +32,9 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from problems.config import Config, load_config
-from problems.scene import Plant, Scene, build_scene, home_state
-from solvers.timing import single_thread_blas
+from c3bench.problems.config import Config, load_config
+from c3bench.problems.scene import Plant, Scene, build_scene, home_state
+from c3bench.solvers.timing import single_thread_blas
 
 FAILURE_MODES: dict[int, str] = {
     0: "success",
@@ -353,16 +353,16 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
     reference controller (:mod:`solvers.c3`) and the fast path (:mod:`solvers.fast`, batched
     LCS build) differ only in how the models are built and the step is solved.
     """
-    from problems.mpc import build_mpc
-    from solvers.c3 import lcp_prediction_weights
+    from c3bench.problems.mpc import build_mpc
+    from c3bench.solvers.c3 import lcp_prediction_weights
 
     sides = spec.sample_sides() if spec.robust else np.array([spec.model_l])
     scene = build_scene(l=float(sides[0]), config=config)
     mpc = build_mpc(scene, config.mpc)
     dt = config.mpc.dt
     if spec.controller in FAST_CONTROLLERS:
-        from problems.lcs_batch import BatchLinearizer
-        from solvers.fast import FastC3Plus, FastC3PlusController, fast_options
+        from c3bench.problems.lcs_batch import BatchLinearizer
+        from c3bench.solvers.fast import FastC3Plus, FastC3PlusController, fast_options
 
         linearizer = BatchLinearizer(sides, config)
         fast = FastC3PlusController(FastC3Plus(mpc, fast_options(
@@ -377,8 +377,8 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
         def solve(models: Any, weights: np.ndarray | None, x: np.ndarray) -> Any:
             return fast.step(models, x, weights)
     else:
-        from problems.lcs import linearize
-        from solvers.c3 import C3Controller, C3Options
+        from c3bench.problems.lcs import linearize
+        from c3bench.solvers.c3 import C3Controller, C3Options
 
         scenes = [scene] + [build_scene(l=float(side), config=config) for side in sides[1:]]
         reference = C3Controller(C3Options(
@@ -526,7 +526,7 @@ def write_run(out_dir: str | Path, trajectory: Trajectory, records: list[StepRec
     """
     import json
 
-    from problems.instance import atomic_write_bytes
+    from c3bench.problems.instance import atomic_write_bytes
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -556,7 +556,7 @@ def run_summary(spec: ControllerSpec, trajectory: Trajectory,
 def render_run(states: np.ndarray, scene: Scene, path: str | Path, dt: float) -> Path:
     """Animate a run's states (one per control step) as a GIF (raises ``RenderUnavailable``
     without an off-screen GL)."""
-    from problems.scene import render_frames, save_gif
+    from c3bench.problems.scene import render_frames, save_gif
 
     frames = render_frames(scene, states, width=480, height=360)
     return save_gif(frames, path, dt)

@@ -41,15 +41,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from bench.closed_loop import (
+from c3bench.bench.closed_loop import (
     ControllerSpec,
     render_run,
     run_closed_loop,
     write_run,
 )
-from problems.config import Config, load_config
-from problems.instance import atomic_write_bytes
-from problems.scene import RenderUnavailable, build_scene, home_state
+from c3bench.problems.config import Config, load_config
+from c3bench.problems.instance import atomic_write_bytes
+from c3bench.problems.scene import RenderUnavailable, build_scene, home_state
 
 RESULTS_DIR = Path("results") / "closed_loop"
 
@@ -239,7 +239,7 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
               scheduler: str | None = None, rerun: bool = False,
               progress: bool = True) -> SuiteRun:
     """Run cases (skipping stored ones unless ``rerun``) and consolidate ``results.parquet``."""
-    from bench.runner import DaskPool, LocalPool
+    from c3bench.bench.runner import DaskPool, LocalPool
 
     directory = Path(directory)
     cell_dir = directory / "cells"

@@ -11,7 +11,7 @@ import argparse
 import sys
 from typing import Any
 
-from solvers.base import PRECISIONS, PROFILES
+from c3bench.solvers.base import PRECISIONS, PROFILES
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -25,9 +25,9 @@ def _split(values: list[str] | None) -> list[str] | None:
 
 def cmd_run(args: argparse.Namespace, capture: Any = None) -> int:
     """Run a suite (generating its instances first when missing), then write the report."""
-    from bench.report import write_report
-    from bench.runner import run_suite
-    from bench.store import SchemaVersionError
+    from c3bench.bench.report import write_report
+    from c3bench.bench.runner import run_suite
+    from c3bench.bench.store import SchemaVersionError
 
     try:
         summary = run_suite(
@@ -64,8 +64,8 @@ def cmd_run(args: argparse.Namespace, capture: Any = None) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Write ``results/<suite>/report.md`` and its figures."""
-    from bench.report import write_report
-    from bench.store import SchemaVersionError
+    from c3bench.bench.report import write_report
+    from c3bench.bench.store import SchemaVersionError
 
     try:
         path = write_report(args.suite, args.results, figures=not args.no_figures)
@@ -78,8 +78,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_compare(args: argparse.Namespace) -> int:
     """Print who wins between two solvers, per family and settings."""
-    from bench.compare import compare
-    from bench.store import SchemaVersionError
+    from c3bench.bench.compare import compare
+    from c3bench.bench.store import SchemaVersionError
 
     try:
         text = compare(args.suite, args.a, args.b, args.results)

@@ -23,14 +23,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bench import store
-from bench.metrics import (
+from c3bench.bench import store
+from c3bench.bench.metrics import (
     TIME_SHIFT,
     charged_times,
     required_residuals,
     shifted_geometric_mean,
 )
-from bench.report import fmt, markdown_table
+from c3bench.bench.report import fmt, markdown_table
 
 TIE = 0.05
 PEERS: tuple[str, ...] = ("family", "settings", "precision", "start")

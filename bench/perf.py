@@ -192,10 +192,10 @@ def pin_jax_threads() -> bool:
 
 
 def _context(settings: PerfSettings) -> _Context:
-    from problems.config import load_config
-    from problems.mpc import build_mpc
-    from problems.scene import build_scene
-    from problems.suites import sample_states, scripted_push
+    from c3bench.problems.config import load_config
+    from c3bench.problems.mpc import build_mpc
+    from c3bench.problems.scene import build_scene
+    from c3bench.problems.suites import sample_states, scripted_push
 
     config = load_config()
     record = scripted_push(config)
@@ -236,7 +236,7 @@ def _measure(context: _Context, settings: PerfSettings, backend: str, precision:
              device: str, samples: int, step: Step, repeats: int, note: str = ""
              ) -> list[dict[str, Any]]:
     """Warm-up, then ``repeats`` timed steps of ``step(state_index, x, u_prev)``."""
-    from solvers.timing import blas_threads, single_thread_blas
+    from c3bench.solvers.timing import blas_threads, single_thread_blas
 
     rows = []
     load = _load()
@@ -267,15 +267,15 @@ def _measure(context: _Context, settings: PerfSettings, backend: str, precision:
 
 def _fast_step(context: _Context, settings: PerfSettings, samples: int, precision: str,
                backend: str, device: str) -> Step:
-    from problems.lcs_batch import BatchLinearizer
-    from solvers.c3 import C3Options
-    from solvers.fast import FastC3Plus, FastC3PlusController, RiccatiOptions
+    from c3bench.problems.lcs_batch import BatchLinearizer
+    from c3bench.solvers.c3 import C3Options
+    from c3bench.solvers.fast import FastC3Plus, FastC3PlusController, RiccatiOptions
 
     options = C3Options(keep_iterates=False, admm_iterations=settings.iterations)
     linearizer = BatchLinearizer(sample_sides(samples, settings.seed), context.config)
     solver: Any
     if backend == "c3plus-jax":
-        from solvers.fast_jax import JaxC3Plus
+        from c3bench.solvers.fast_jax import JaxC3Plus
 
         solver = JaxC3Plus(context.mpc, options, precision=precision, device=device)
     else:
@@ -302,9 +302,9 @@ def _fast_step(context: _Context, settings: PerfSettings, samples: int, precisio
 
 def _reference_step(context: _Context, settings: PerfSettings, samples: int, backend: str
                     ) -> Step:
-    from problems.lcs import linearize
-    from problems.scene import build_scene
-    from solvers.c3 import C3Controller, C3Options
+    from c3bench.problems.lcs import linearize
+    from c3bench.problems.scene import build_scene
+    from c3bench.solvers.c3 import C3Controller, C3Options
 
     options = C3Options(qp_backend=REFERENCE_BACKENDS[backend], keep_iterates=False,
                         admm_iterations=settings.iterations)
@@ -347,7 +347,7 @@ def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.
     if wants_jax and settings.device == "cpu":
         pin_jax_threads()
     context = _context(settings)
-    from solvers.timing import blas_threads, single_thread_blas
+    from c3bench.solvers.timing import blas_threads, single_thread_blas
 
     with single_thread_blas():
         threads = blas_threads()
@@ -380,7 +380,7 @@ def _run_one(context: _Context, settings: PerfSettings, backend: str, precision:
                      note=note, load_avg=_load())]
 
     if backend == "c3plus-jax":
-        from solvers.fast_jax import JaxUnavailable, gpu_available, jax_available
+        from c3bench.solvers.fast_jax import JaxUnavailable, gpu_available, jax_available
 
         if not jax_available():
             return skip("JAX not installed (pip install 'c3bench[jax]')")
@@ -400,13 +400,13 @@ def _run_one(context: _Context, settings: PerfSettings, backend: str, precision:
         if samples not in REFERENCE_SAMPLES:
             return skip(f"the reference controller is measured at samples "
                         f"{'/'.join(map(str, REFERENCE_SAMPLES))} only")
-        from solvers import registry
+        from c3bench.solvers import registry
 
         if not registry.get(REFERENCE_BACKENDS[backend]).availability()[0]:
             return skip(f"{REFERENCE_BACKENDS[backend]} not available")
         step = _reference_step(context, settings, samples, backend)
         start = time.perf_counter()
-        from solvers.timing import single_thread_blas
+        from c3bench.solvers.timing import single_thread_blas
 
         with single_thread_blas():
             index, x, u_prev = context.states[0]
@@ -489,7 +489,7 @@ def write_perf(frame: pd.DataFrame, results_dir: Path) -> tuple[Path, Path]:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from problems.instance import atomic_write_bytes
+    from c3bench.problems.instance import atomic_write_bytes
 
     directory = Path(results_dir) / "perf"
     parquet, csv = directory / "perf.parquet", directory / "perf.csv"

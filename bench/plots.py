@@ -19,8 +19,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from bench import store
-from bench.metrics import performance_profile, performance_ratios
+from c3bench.bench import store
+from c3bench.bench.metrics import performance_profile, performance_ratios
 
 DPI = 110
 SETTINGS_ORDER: tuple[str, ...] = ("default", "low_accuracy", "mid_accuracy", "high_accuracy")

@@ -31,11 +31,16 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bench.store import SCHEMA_VERSION, SchemaVersionError, _check_version, atomic_write_bytes
-from problems.instance import Problem
-from solvers import registry
-from solvers.base import WarmStart, settings_for
-from solvers.residuals import cost_error, residuals
+from c3bench.bench.store import (
+    SCHEMA_VERSION,
+    SchemaVersionError,
+    _check_version,
+    atomic_write_bytes,
+)
+from c3bench.problems.instance import Problem
+from c3bench.solvers import registry
+from c3bench.solvers.base import WarmStart, settings_for
+from c3bench.solvers.residuals import cost_error, residuals
 
 
 @dataclass(frozen=True)
@@ -171,7 +176,7 @@ def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
     copy of the table. Runs through :func:`solvers.registry.solve` (isolated child, time
     limit enforced), so a failing reference costs only this instance's ``f*``.
     """
-    from bench.runner import import_plugins
+    from c3bench.solvers.registry import import_plugins
 
     import_plugins(preload)
     ref = Reference(problem.name, problem.family, digest, plan.solver if plan else "",

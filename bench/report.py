@@ -20,15 +20,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from bench import store
-from bench.metrics import (
+from c3bench.bench import store
+from c3bench.bench.metrics import (
     DUAL_FAMILIES,
     TIME_SHIFT,
     aggregate,
     required_residuals,
 )
-from bench.plots import all_figures, ordered_settings
-from bench.reference import REFERENCE_PLANS, load_references, summarise
+from c3bench.bench.plots import all_figures, ordered_settings
+from c3bench.bench.reference import REFERENCE_PLANS, load_references, summarise
 
 # (header, aggregate column, format kind) of the per-family tables
 TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
@@ -147,7 +147,7 @@ def _method() -> str:
 def _solver_table(info: dict[str, Any], frame: pd.DataFrame) -> str:
     table = info.get("solver_table")
     if not table:
-        from solvers import registry
+        from c3bench.solvers import registry
 
         table = [{"name": r.name, "available": r.available, "reason": r.reason,
                   "version": r.version, "families": list(r.families),
@@ -281,7 +281,7 @@ def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
 
 def _linked_sections(paths: store.SuitePaths) -> list[str]:
     """The ``perf`` section (from ``results/perf/``) and a pointer to the closed-loop report."""
-    from bench.perf import perf_report_section
+    from c3bench.bench.perf import perf_report_section
 
     results_dir = paths.root.parent
     out = [perf_report_section(results_dir,

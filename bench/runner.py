@@ -13,7 +13,7 @@ Both executors call the same :func:`run_cell`:
   dies or overruns a watchdog costs only its cell, recorded as a failed row, and is replaced);
 * a Dask distributed cluster when a scheduler address is given (``Client(address)``).
 
-Timing follows SPEC section 5 through :func:`solvers.registry.solve`: an untimed warm-up, then
+Timing follows docs/metrics.md through :func:`solvers.registry.solve`: an untimed warm-up, then
 ``repeats`` timed solves (median), BLAS pinned to one thread, build and solve apart, the time
 limit enforced in a killed child. Each finished cell is written at once (``store.write_cell``:
 temporary file + rename), so an interrupt or crash loses nothing finished; a rerun skips
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import importlib
 import itertools
 import json
 import math
@@ -45,9 +44,9 @@ from typing import Any
 
 import numpy as np
 
-from bench import store
-from bench.metrics import judge
-from bench.reference import (
+from c3bench.bench import store
+from c3bench.bench.metrics import judge
+from c3bench.bench.reference import (
     Reference,
     ReferencePlan,
     ReferenceValue,
@@ -58,11 +57,11 @@ from bench.reference import (
     reusable,
     save_references,
 )
-from problems.instance import Problem, list_instances, load_problem
-from solvers import registry
-from solvers.base import PRECISIONS, PROFILES, Result, WarmStart, settings_for
-from solvers.residuals import cost_error, residuals
-from solvers.timing import blas_threads
+from c3bench.problems.instance import Problem, list_instances, load_problem
+from c3bench.solvers import registry
+from c3bench.solvers.base import PRECISIONS, PROFILES, Result, WarmStart, settings_for
+from c3bench.solvers.residuals import cost_error, residuals
+from c3bench.solvers.timing import blas_threads
 
 STARTS: tuple[str, ...] = ("cold", "warm")
 DEFAULT_SETTINGS: tuple[str, ...] = ("default",)
@@ -104,7 +103,8 @@ class RunOptions:
         Seconds per reference solve.
     preload
         Plugins loaded in every worker before a cell runs, ``module`` or
-        ``module:function`` (to register extra backends; see :func:`import_plugins`).
+        ``module:function`` (to register extra backends; see
+        :func:`c3bench.solvers.registry.import_plugins`).
     suite
         Suite name written into each row.
     """
@@ -126,22 +126,6 @@ class CellOutcome:
 
     row: dict[str, Any]
     trace: dict[str, Any] = field(default_factory=dict)
-
-
-_PLUGINS_LOADED: set[str] = set()
-
-
-def import_plugins(entries: Iterable[str]) -> None:
-    """Load plugins in this process, once each: ``module`` (imported; registering backends
-    at import) or ``module:function`` (imported, then ``function()`` called)."""
-    for entry in entries:
-        if entry in _PLUGINS_LOADED:
-            continue
-        module, _, function = entry.partition(":")
-        loaded = importlib.import_module(module)
-        if function:
-            getattr(loaded, function)()
-        _PLUGINS_LOADED.add(entry)
 
 
 # --- rows -------------------------------------------------------------------------------------
@@ -230,7 +214,7 @@ def run_cell(cell: Cell, problem: Problem, options: RunOptions, version: str = "
     Both executors (local pool, Dask) call exactly this function.
     """
     try:
-        import_plugins(options.preload)
+        registry.import_plugins(options.preload)
         settings = settings_for(cell.settings, time_limit=options.time_limit,
                                 precision=cell.precision)
         result = registry.solve(cell.solver, problem, settings,
@@ -561,7 +545,7 @@ def ensure_instances(spec: Any, paths: store.SuitePaths, capture: Any = None,
                      progress: bool = True) -> list[Path]:
     """Generate the suite's instances under ``paths.instances`` unless already there."""
     if not (paths.instances / "manifest.json").exists():
-        from problems.suites import generate_suite
+        from c3bench.problems.suites import generate_suite
 
         generate_suite(spec, paths.instances, capture=capture, progress=progress)
     return list_instances(paths.instances)
@@ -644,7 +628,7 @@ def run_suite(
     name = _suite_name(suite)
     paths = store.SuitePaths.of(results_dir, name)
     paths.root.mkdir(parents=True, exist_ok=True)
-    import_plugins(preload)
+    registry.import_plugins(preload)
     instance_files = ensure_instances(suite, paths, capture, progress)
     problems: dict[str, Problem] = {}
     hashes: dict[str, str] = {}

@@ -32,14 +32,11 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from problems.instance import atomic_write_bytes
+from c3bench.problems.errors import SchemaVersionError
+from c3bench.problems.instance import atomic_write_bytes
 
 SCHEMA_VERSION = 1
 PARQUET_METADATA_KEY = b"c3bench_schema"
-
-
-class SchemaVersionError(ValueError):
-    """A results file was written with another schema version (or is not a c3bench file)."""
 
 
 @dataclass(frozen=True)

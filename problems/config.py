@@ -49,7 +49,7 @@ class SceneConfig:
 
 @dataclass(frozen=True)
 class MPCConfig:
-    """The MPC of SPEC.md section 3 with the seed's defaults.
+    """The MPC of docs/mpc.md with the seed's defaults.
 
     Cost: ``sum_{k<T} (x_k - x*)^T Q (x_k - x*) + u_k^T R u_k + (x_T - x*)^T Q_f (x_T - x*)``
     with ``Q_f = terminal_factor * Q``.

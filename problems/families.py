@@ -1,4 +1,4 @@
-"""Builders of the five subproblem families (SPEC.md section 3).
+"""Builders of the five subproblem families (docs/families.md).
 
 All return a :class:`problems.instance.Problem` in the form
 ``min 1/2 z^T P z + q^T z + offset s.t. A z = b, G z <= h, lb <= z <= ub``, complementarity
@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from problems.instance import Problem
-from problems.lcs import LCS
-from problems.mpc import MPC, HorizonLayout
+from c3bench.problems.instance import Problem
+from c3bench.problems.lcs import LCS
+from c3bench.problems.mpc import MPC, HorizonLayout
 
 RHO_KEYS: tuple[str, ...] = ("x", "lam", "u", "eta")
 

@@ -29,16 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from problems.lcs import LCS, LCS_MATRICES
+from c3bench.problems.errors import InstanceFormatError
+from c3bench.problems.lcs import LCS, LCS_MATRICES
 
 SCHEMA_VERSION = 1
 FAMILIES: tuple[str, ...] = ("c3plus_qp", "c3_qp", "projection", "mpcc", "lcp")
 QP_FIELDS: tuple[str, ...] = ("P", "q", "A", "b", "G", "h", "lb", "ub")
 REQUIRED_META: tuple[str, ...] = ("scene", "l", "dt", "T", "seed", "precision")
-
-
-class InstanceFormatError(ValueError):
-    """A stored instance cannot be read: wrong schema version, missing key or bad file."""
 
 
 @dataclass

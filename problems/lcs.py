@@ -1,6 +1,6 @@
 """Linear complementarity system (LCS) linearisation of the cube-tipping scene.
 
-The LCS (SPEC.md section 3) is
+The LCS (docs/lcs.md) is
 
     x_{k+1} = A x_k + B u_k + D lam_k + d,
     0 <= lam_k  perp  E x_k + F lam_k + H u_k + c >= 0,
@@ -36,7 +36,7 @@ from typing import Literal
 import mujoco
 import numpy as np
 
-from problems.scene import Scene
+from c3bench.problems.scene import Scene
 
 ContactModel = Literal["anitescu", "stewart_trinkle"]
 CONTACT_MODELS: tuple[str, ...] = ("anitescu", "stewart_trinkle")
@@ -50,7 +50,7 @@ class LCS:
     Attributes
     ----------
     A, B, D, d, E, F, H, c
-        The LCS matrices (SPEC.md section 3).
+        The LCS matrices (docs/lcs.md).
     dt
         Time step (s).
     contact_model

@@ -48,8 +48,8 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from problems.config import Config, load_config
-from problems.lcs import (
+from c3bench.problems.config import Config, load_config
+from c3bench.problems.lcs import (
     CONTACT_MODELS,
     LCS,
     LCS_MATRICES,
@@ -57,7 +57,7 @@ from problems.lcs import (
     check_dt,
     smooth_dynamics,
 )
-from problems.scene import Scene, build_scene
+from c3bench.problems.scene import Scene, build_scene
 
 _UIDS = itertools.count(1)
 

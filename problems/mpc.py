@@ -1,6 +1,6 @@
 """The cube-tipping MPC: weights, goal state and the horizon variable layout.
 
-Cost (SPEC.md section 3):
+Cost (docs/mpc.md):
 
     J = sum_{k<T} (x_k - x*)^T Q (x_k - x*) + u_k^T R u_k  +  (x_T - x*)^T Q_f (x_T - x*),
 
@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from problems.config import MPCConfig
-from problems.scene import Scene, target_state
+from c3bench.problems.config import MPCConfig
+from c3bench.problems.scene import Scene, target_state
 
 
 @dataclass

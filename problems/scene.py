@@ -28,14 +28,11 @@ from typing import Literal
 import mujoco
 import numpy as np
 
-from problems.config import Config, SceneConfig, load_config
+from c3bench.problems.config import Config, SceneConfig, load_config
+from c3bench.problems.errors import RenderUnavailable
 
 Variant = Literal["planar", "spatial"]
 VARIANTS: tuple[str, ...] = ("planar", "spatial")
-
-
-class RenderUnavailable(RuntimeError):
-    """Raised when no off-screen OpenGL backend can create a rendering context."""
 
 
 def _check_side(l: float) -> float:

@@ -29,12 +29,12 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from problems import families
-from problems.config import Config, load_config
-from problems.instance import Problem, atomic_write_bytes, save_problem
-from problems.lcs import LCS, contact_frames, linearize
-from problems.mpc import MPC, HorizonLayout, build_mpc
-from problems.scene import Plant, Scene, build_scene, home_state
+from c3bench.problems import families
+from c3bench.problems.config import Config, load_config
+from c3bench.problems.instance import Problem, atomic_write_bytes, save_problem
+from c3bench.problems.lcs import LCS, contact_frames, linearize
+from c3bench.problems.mpc import MPC, HorizonLayout, build_mpc
+from c3bench.problems.scene import Plant, Scene, build_scene, home_state
 
 
 @dataclass(frozen=True)

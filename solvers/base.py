@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from problems.instance import Problem
+from c3bench.problems.instance import Problem
 
 # name -> tolerance used both for the solver's options and for the success check.
 PROFILES: dict[str, float] = {
@@ -145,10 +145,6 @@ class Result:
         """A failure record with a category and a reason."""
         return cls(solver=solver, problem=problem, found=False, status=status,
                    failure=failure, **extra)
-
-
-class BackendUnavailable(RuntimeError):
-    """Raised by a backend whose package or licence is missing."""
 
 
 class Backend:

@@ -1,4 +1,4 @@
-"""The C3 / C3+ controller: consensus ADMM for the MPC with complementarity (SPEC.md section 4).
+"""The C3 / C3+ controller: consensus ADMM for the MPC with complementarity (docs/admm.md).
 
 The MPCC of one control step is
 
@@ -101,15 +101,15 @@ from typing import Any
 
 import numpy as np
 
-from problems import families
-from problems.instance import Problem
-from problems.lcs import LCS
-from problems.mpc import MPC, HorizonLayout
-from problems.suites import Capture, CaptureContext, CapturedIterate
-from solvers import registry
-from solvers.base import Backend, Result, Settings, settings_for
-from solvers.lcp import lemke
-from solvers.residuals import complementarity_violation
+from c3bench.problems import families
+from c3bench.problems.instance import Problem
+from c3bench.problems.lcs import LCS
+from c3bench.problems.mpc import MPC, HorizonLayout
+from c3bench.problems.suites import Capture, CaptureContext, CapturedIterate
+from c3bench.solvers import registry
+from c3bench.solvers.base import Backend, Result, Settings, settings_for
+from c3bench.solvers.lcp import lemke
+from c3bench.solvers.residuals import complementarity_violation
 
 VARIANTS: tuple[str, ...] = ("c3plus", "c3")
 RHO_SCHEDULES: tuple[str, ...] = ("geometric", "adaptive", "residual_balancing")
@@ -605,7 +605,7 @@ def project_step_c3plus(v: np.ndarray, layout: HorizonLayout, rho: Mapping[str, 
                         ) -> np.ndarray:
     """C3+'s projection of steps ``v`` (..., step size): ``x, u`` copied, pairs in closed form
     with weights ``rho_lam``, ``rho_eta`` (:func:`solvers.projection.c3plus_projection`)."""
-    from solvers.projection import c3plus_projection
+    from c3bench.solvers.projection import c3plus_projection
 
     out = np.array(v, dtype=float, copy=True)
     lam_s, eta_s = layout.index(0, "lam"), layout.index(0, "eta")

@@ -54,12 +54,10 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
+from c3bench.problems.errors import NotPositiveDefiniteError
+
 DTYPES: dict[str, type[np.floating[Any]]] = {"float64": np.float64, "float32": np.float32}
 MAX_FALLBACKS = 10
-
-
-class NotPositiveDefiniteError(ValueError):
-    """``Q`` (after the scaling steps) or the Schur complement failed its Cholesky factorisation."""
 
 
 @dataclass(frozen=True)

@@ -114,14 +114,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from problems.families import dynamics_rows
-from problems.instance import Problem
-from problems.lcs_batch import LCSBatch
-from problems.mpc import MPC, HorizonLayout
-from solvers.base import Backend, Result, Settings, WarmStart
-from solvers.c3 import C3Options, rho_multiplier
-from solvers.registry import register
-from solvers.timing import Stopwatch
+from c3bench.problems.families import dynamics_rows
+from c3bench.problems.instance import Problem
+from c3bench.problems.lcs_batch import LCSBatch
+from c3bench.problems.mpc import MPC, HorizonLayout
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.solvers.c3 import C3Options, rho_multiplier
+from c3bench.solvers.registry import register
+from c3bench.solvers.timing import Stopwatch
 
 DTYPES: dict[str, type[np.floating[Any]]] = {"float64": np.float64, "float32": np.float32}
 RHO_KEYS: tuple[str, ...] = ("x", "lam", "u", "eta")

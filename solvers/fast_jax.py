@@ -47,15 +47,16 @@ from typing import Any
 
 import numpy as np
 
-from problems.lcs_batch import LCSBatch
-from problems.mpc import MPC
-from solvers.c3 import C3Options
-from solvers.fast import FastSolution, FastTimings
+from c3bench.problems.errors import BackendUnavailable
+from c3bench.problems.lcs_batch import LCSBatch
+from c3bench.problems.mpc import MPC
+from c3bench.solvers.c3 import C3Options
+from c3bench.solvers.fast import FastSolution, FastTimings
 
 DTYPES: tuple[str, ...] = ("float64", "float32")
 
 
-class JaxUnavailable(RuntimeError):
+class JaxUnavailable(BackendUnavailable):
     """JAX is not installed, or the requested device is not visible."""
 
 

@@ -26,10 +26,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from problems.instance import Problem
-from solvers.base import Backend, Result, Settings, WarmStart
-from solvers.registry import register
-from solvers.timing import Stopwatch
+from c3bench.problems.instance import Problem
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.solvers.registry import register
+from c3bench.solvers.timing import Stopwatch
 
 
 def c3plus_projection(v_lam: np.ndarray, v_eta: np.ndarray, w_lam: np.ndarray | float,

@@ -16,26 +16,26 @@ import statistics
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from problems.instance import Problem
-from solvers.base import Backend, Result, Settings, WarmStart
-from solvers.timing import single_thread_blas
+from c3bench.problems.instance import Problem
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.solvers.timing import single_thread_blas
 
 # Modules that define backends; each registers its backends on import.
 BACKEND_MODULES: tuple[str, ...] = (
-    "solvers.backends.qp",
-    "solvers.backends.kkt",
-    "solvers.backends.lcp",
-    "solvers.projection",
-    "solvers.backends.miqp",
-    "solvers.backends.nlp",
-    "solvers.backends.c3",
-    "solvers.fast",
+    "c3bench.solvers.backends.qp",
+    "c3bench.solvers.backends.kkt",
+    "c3bench.solvers.backends.lcp",
+    "c3bench.solvers.projection",
+    "c3bench.solvers.backends.miqp",
+    "c3bench.solvers.backends.nlp",
+    "c3bench.solvers.backends.c3",
+    "c3bench.solvers.fast",
 )
 
 _BACKENDS: dict[str, Backend] = {}
@@ -327,3 +327,19 @@ def solve(name: str, problem: Problem, settings: Settings | None = None,
         budget = settings.time_limit * (repeats + (1 if warmup else 0))
         result = _threaded(call, budget, name, problem.name)
     return _finish(result, problem)
+
+
+_PLUGINS_LOADED: set[str] = set()
+
+
+def import_plugins(entries: Iterable[str]) -> None:
+    """Load plugins in this process, once each: ``module`` (imported; registering backends
+    at import) or ``module:function`` (imported, then ``function()`` called)."""
+    for entry in entries:
+        if entry in _PLUGINS_LOADED:
+            continue
+        module, _, function = entry.partition(":")
+        loaded = importlib.import_module(module)
+        if function:
+            getattr(loaded, function)()
+        _PLUGINS_LOADED.add(entry)

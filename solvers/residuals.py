@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from problems.instance import Problem
+from c3bench.problems.instance import Problem
 
 
 def _inf_norm(vector: np.ndarray) -> float:

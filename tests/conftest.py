@@ -7,14 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from problems import families
-from problems.config import load_config
-from problems.instance import Problem, load_instances
-from problems.lcs import linearize
-from problems.mpc import build_mpc
-from problems.scene import build_scene
-from problems.suites import generate_suite, sample_states, scripted_push
-from solvers.backends.miqp import enumerate_modes
+from c3bench.problems import families
+from c3bench.problems.config import load_config
+from c3bench.problems.instance import Problem, load_instances
+from c3bench.problems.lcs import linearize
+from c3bench.problems.mpc import build_mpc
+from c3bench.problems.scene import build_scene
+from c3bench.problems.suites import generate_suite, sample_states, scripted_push
+from c3bench.solvers.backends.miqp import enumerate_modes
 
 SMALL_MPCC_META = {"scene": "planar", "l": 0.29, "dt": 0.05, "T": 1, "seed": 0,
                    "precision": "float64"}

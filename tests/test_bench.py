@@ -23,18 +23,18 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from bench import reference as reference_module
-from bench import runner, store
-from bench.commands import register_commands
-from bench.compare import compare, compare_frame
-from bench.metrics import TIME_SHIFT, aggregate, judge, success_series
-from bench.reference import ReferencePlan, load_references
-from bench.report import write_report
-from problems.instance import Problem
-from problems.suites import SuiteSpec, generate_suite
-from solvers import registry
-from solvers.base import Backend, Result, Settings, WarmStart
-from solvers.timing import Stopwatch
+from c3bench.bench import reference as reference_module
+from c3bench.bench import runner, store
+from c3bench.bench.commands import register_commands
+from c3bench.bench.compare import compare, compare_frame
+from c3bench.bench.metrics import TIME_SHIFT, aggregate, judge, success_series
+from c3bench.bench.reference import ReferencePlan, load_references
+from c3bench.bench.report import write_report
+from c3bench.problems.instance import Problem
+from c3bench.problems.suites import SuiteSpec, generate_suite
+from c3bench.solvers import registry
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.solvers.timing import Stopwatch
 
 QP = ("c3plus_qp", "c3_qp")
 TINY = SuiteSpec("tiny", n_states=1, admm_iterations=(0, 1, 2), projection_iterations=(0,),
@@ -72,14 +72,17 @@ class FakeKKT(Backend):
                                        "admm_iteration"]), "cond_schur_equilibrated": 1e4})
 
 
-class FakeLstsq(Backend):
-    name = "fake_lstsq"
+class FakeLU(Backend):
+    name = "fake_lu"
     families = QP
 
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
         K = np.block([[problem.P, problem.A.T], [problem.A, np.zeros((problem.n_eq,) * 2)]])
-        sol = np.linalg.lstsq(K, np.concatenate([-problem.q, problem.b]), rcond=None)[0]
+        rhs = np.concatenate([-problem.q, problem.b])
+        sol = np.linalg.solve(K, rhs)  # LU, then two steps of iterative refinement
+        for _ in range(2):
+            sol += np.linalg.solve(K, rhs - K @ sol)
         return Result(self.name, problem.name, True, "solved", x=sol[:problem.n],
                       y=sol[problem.n:], iterations=1)
 
@@ -135,7 +138,7 @@ class FakeDie(Backend):
         return Result(self.name, problem.name, False, "never reached")
 
 
-FAKES: tuple[Backend, ...] = (FakeKKT(), FakeLstsq(), FakeWrong(), FakeCrash(), FakeHang(),
+FAKES: tuple[Backend, ...] = (FakeKKT(), FakeLU(), FakeWrong(), FakeCrash(), FakeHang(),
                               FakeNaN(), FakeDie())
 
 
@@ -144,7 +147,7 @@ def register_fakes() -> None:
     for backend in FAKES:
         registry.register(backend)
 
-FAKE_PLANS = {family: ReferencePlan("fake_kkt", "fake_lstsq") for family in QP}
+FAKE_PLANS = {family: ReferencePlan("fake_kkt", "fake_lu") for family in QP}
 
 
 def dying_run_cell(cell: runner.Cell, *args: Any) -> runner.CellOutcome:
@@ -277,7 +280,7 @@ def test_references_are_cross_checked(resumed: dict[str, Any]) -> None:
     references = load_references(resumed["paths"].references)
     assert len(references) == 6
     for ref in references.values():
-        assert ref.available and ref.solver == "fake_kkt" and ref.check_solver == "fake_lstsq"
+        assert ref.available and ref.solver == "fake_kkt" and ref.check_solver == "fake_lu"
         # ill-conditioned: two direct methods differ; an inaccurate check gives no spread
         if math.isnan(ref.spread):
             assert "residual" in ref.check_status
@@ -544,7 +547,7 @@ def test_commands(resumed: dict[str, Any], tmp_path: Path,
 
 
 def test_predecessors_follow_admm_sequences(instances: Path) -> None:
-    from problems.instance import load_instances
+    from c3bench.problems.instance import load_instances
 
     problems = load_instances(instances)
     previous = runner.predecessors(problems)

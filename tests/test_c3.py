@@ -14,13 +14,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from problems import families
-from problems.config import load_config
-from problems.instance import Problem
-from problems.lcs import LCS, linearize
-from problems.mpc import MPC, build_mpc
-from problems.scene import build_scene
-from problems.suites import (
+from c3bench.problems import families
+from c3bench.problems.config import load_config
+from c3bench.problems.instance import Problem
+from c3bench.problems.lcs import LCS, linearize
+from c3bench.problems.mpc import MPC, build_mpc
+from c3bench.problems.scene import build_scene
+from c3bench.problems.suites import (
     CaptureContext,
     SuiteSpec,
     build_state_instances,
@@ -28,9 +28,9 @@ from problems.suites import (
     scripted_push,
     seed_rho,
 )
-from solvers import registry
-from solvers.base import Backend, Result, Settings, WarmStart, settings_for
-from solvers.c3 import (
+from c3bench.solvers import registry
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart, settings_for
+from c3bench.solvers.c3 import (
     SEED_RHO0,
     C3Controller,
     C3Options,
@@ -52,7 +52,7 @@ from solvers.c3 import (
     solve_robust,
     to_full_steps,
 )
-from solvers.residuals import complementarity_violation, primal_residual
+from c3bench.solvers.residuals import complementarity_violation, primal_residual
 
 EXACT_QP_BACKENDS = ("clarabel", "kkt_ldl", "proxqp_dense")
 
@@ -120,7 +120,7 @@ COST_FACTOR_ROLLOUT = 1.6
 
 @pytest.mark.parametrize("which", [0, 1])
 def test_c3plus_cost_within_factor_of_miqp_optimum(small: SimpleNamespace, which: int) -> None:
-    miqp = pytest.importorskip("solvers.backends.miqp")
+    miqp = pytest.importorskip("c3bench.solvers.backends.miqp")
     case = small.cases[which]
     problem = families.mpcc("mpcc-test", case.lcs, small.mpc, case.x0)
     _, optimum = miqp.enumerate_modes(problem)
@@ -192,7 +192,7 @@ def test_admm_iterates_satisfy_qp_projection_and_dual_update(small: SimpleNamesp
 
 # --- projections ------------------------------------------------------------------------------
 def test_closed_form_projection_equals_miqp_on_c3plus_projection(small: SimpleNamespace) -> None:
-    miqp = pytest.importorskip("solvers.backends.miqp")
+    miqp = pytest.importorskip("c3bench.solvers.backends.miqp")
     lcs = small.cases[0].lcs
     layout = full_layout(lcs, 1)
     rng = np.random.default_rng(7)
@@ -212,7 +212,7 @@ def test_closed_form_projection_equals_miqp_on_c3plus_projection(small: SimpleNa
 
 
 def test_c3_miqp_projection_step_is_optimal(small: SimpleNamespace) -> None:
-    miqp = pytest.importorskip("solvers.backends.miqp")
+    miqp = pytest.importorskip("c3bench.solvers.backends.miqp")
     if not _available("scip"):
         pytest.skip("scip is unavailable")
     lcs = small.cases[0].lcs
@@ -546,7 +546,7 @@ def test_lcp_prediction_weights_prefer_the_true_side(small: SimpleNamespace) -> 
 
 # --- registry adapters -----------------------------------------------------------------------
 def test_mpcc_adapter_recovers_the_mpc_and_solves(small: SimpleNamespace) -> None:
-    from solvers.backends.c3 import mpc_from_mpcc
+    from c3bench.solvers.backends.c3 import mpc_from_mpcc
 
     case = small.cases[1]
     problem = families.mpcc("mpcc-adapter", case.lcs, small.mpc, case.x0)

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.closed_loop import (
+from c3bench.bench.closed_loop import (
     Trajectory,
     cube_geometry,
     label_failure_mode,
     simulate,
     summarise,
 )
-from problems.config import load_config
-from problems.scene import build_scene, home_state, target_state
+from c3bench.problems.config import load_config
+from c3bench.problems.scene import build_scene, home_state, target_state
 
 CONFIG = load_config()
 SCENE = build_scene(config=CONFIG)
@@ -101,7 +101,7 @@ def test_duration_must_be_a_multiple_of_dt() -> None:
 
 
 def test_short_closed_loop_is_deterministic() -> None:
-    from bench.closed_loop import ControllerSpec, run_closed_loop
+    from c3bench.bench.closed_loop import ControllerSpec, run_closed_loop
 
     spec = ControllerSpec(qp_backend="clarabel")
     first, records, outcome = run_closed_loop(spec, CONFIG, duration=0.5)
@@ -112,7 +112,7 @@ def test_short_closed_loop_is_deterministic() -> None:
 
 
 def test_robust_sides_are_seeded() -> None:
-    from bench.closed_loop import ControllerSpec
+    from c3bench.bench.closed_loop import ControllerSpec
 
     spec = ControllerSpec(controller="c3plus-robust", samples=16, seed=3)
     sides = spec.sample_sides()
@@ -122,7 +122,7 @@ def test_robust_sides_are_seeded() -> None:
 
 
 def test_closed_loop_command_writes_records(tmp_path, capsys) -> None:
-    from bench.cli import main
+    from c3bench.bench.cli import main
 
     out = tmp_path / "run"
     assert main(["closed-loop", "--duration", "0.25", "--quiet", "--out", str(out)]) == 0
@@ -132,7 +132,7 @@ def test_closed_loop_command_writes_records(tmp_path, capsys) -> None:
 
 
 def test_fast_robust_controller_runs_in_the_loop() -> None:
-    from bench.closed_loop import ControllerSpec, run_closed_loop
+    from c3bench.bench.closed_loop import ControllerSpec, run_closed_loop
 
     spec = ControllerSpec(controller="c3plus-fast-robust", samples=4)
     trajectory, _, outcome = run_closed_loop(spec, CONFIG, duration=0.3)
@@ -143,7 +143,7 @@ def test_fast_robust_controller_runs_in_the_loop() -> None:
 
 def test_fast_and_reference_controllers_apply_the_same_first_input() -> None:
     """n = 1: the batched Riccati C3+ and the reference C3+ with Clarabel agree."""
-    from bench.closed_loop import ControllerSpec, make_policy
+    from c3bench.bench.closed_loop import ControllerSpec, make_policy
 
     x0 = home_state(SCENE)
     fast, _ = make_policy(ControllerSpec(controller="c3plus-fast"), CONFIG)(x0, 0.0)
@@ -152,7 +152,7 @@ def test_fast_and_reference_controllers_apply_the_same_first_input() -> None:
 
 
 def test_pd_tracking_law_interpolates_the_plan() -> None:
-    from bench.closed_loop import ControllerSpec, pd_tracking_law
+    from c3bench.bench.closed_loop import ControllerSpec, pd_tracking_law
 
     spec = ControllerSpec(feedback=True, feedback_kp=100.0, feedback_kd=20.0)
     x = home_state(SCENE)
@@ -169,7 +169,7 @@ def test_pd_tracking_law_interpolates_the_plan() -> None:
 
 
 def test_feedback_changes_the_applied_forces() -> None:
-    from bench.closed_loop import ControllerSpec, run_closed_loop
+    from c3bench.bench.closed_loop import ControllerSpec, run_closed_loop
 
     plain, _, _ = run_closed_loop(ControllerSpec(controller="c3plus-fast"), CONFIG, 0.25)
     tracked, _, outcome = run_closed_loop(ControllerSpec(controller="c3plus-fast",

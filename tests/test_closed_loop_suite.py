@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.closed_loop import ControllerSpec
-from bench.closed_loop_suite import Case, run_cases, sweep_cases, sweep_grid, write_report
+from c3bench.bench.closed_loop import ControllerSpec
+from c3bench.bench.closed_loop_suite import Case, run_cases, sweep_cases, sweep_grid, write_report
 
 
 def short_cases() -> list[Case]:
@@ -26,7 +26,7 @@ def test_suite_runs_stores_resumes_and_reports(tmp_path: Path) -> None:
     assert rows["nominal"]["steps"] == 5 and rows["nominal"]["error"] == ""
     # an unknown QP backend fails every control step: counted fallbacks, not a crash
     assert rows["broken"]["fallback_count"] == 5
-    from problems.config import load_config
+    from c3bench.problems.config import load_config
 
     config = load_config()
     nominal, jittered = short_cases()[0], short_cases()[1]

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from problems.instance import Problem, load_instances
-from problems.suites import generate_suite
-from solvers import registry
-from solvers.base import Settings, settings_for
-from solvers.equilibrated import (
+from c3bench.problems.instance import Problem, load_instances
+from c3bench.problems.suites import generate_suite
+from c3bench.solvers import registry
+from c3bench.solvers.base import Settings, settings_for
+from c3bench.solvers.equilibrated import (
     ABLATIONS,
     EquilibratedKKT,
     EquilibratedSolution,
@@ -23,8 +23,8 @@ from solvers.equilibrated import (
     conditioning_table,
     solve_equality_qp,
 )
-from solvers.residuals import dual_residual, primal_residual
-from solvers.timing import single_thread_blas
+from c3bench.solvers.residuals import dual_residual, primal_residual
+from c3bench.solvers.timing import single_thread_blas
 
 
 @pytest.fixture(autouse=True)

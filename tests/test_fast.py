@@ -10,17 +10,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from problems.config import load_config
-from problems.instance import Problem, load_instances
-from problems.lcs import LCS_MATRICES, linearize
-from problems.lcs_batch import BatchLinearizer, LCSBatch
-from problems.mpc import build_mpc
-from problems.scene import build_scene
-from problems.suites import generate_suite, sample_states, scripted_push
-from solvers import registry
-from solvers.base import PROFILES, Settings, settings_for
-from solvers.c3 import C3Controller, C3Options, controller_capture, solve_c3
-from solvers.fast import (
+from c3bench.problems.config import load_config
+from c3bench.problems.instance import Problem, load_instances
+from c3bench.problems.lcs import LCS_MATRICES, linearize
+from c3bench.problems.lcs_batch import BatchLinearizer, LCSBatch
+from c3bench.problems.mpc import build_mpc
+from c3bench.problems.scene import build_scene
+from c3bench.problems.suites import generate_suite, sample_states, scripted_push
+from c3bench.solvers import registry
+from c3bench.solvers.base import PROFILES, Settings, settings_for
+from c3bench.solvers.c3 import C3Controller, C3Options, controller_capture, solve_c3
+from c3bench.solvers.fast import (
     FactorCache,
     FastC3Plus,
     FastC3PlusController,
@@ -28,8 +28,8 @@ from solvers.fast import (
     project_c3plus_batch,
     solve_c3plus_qp,
 )
-from solvers.projection import c3plus_projection
-from solvers.residuals import primal_residual, residuals
+from c3bench.solvers.projection import c3plus_projection
+from c3bench.solvers.residuals import primal_residual, residuals
 
 MID = PROFILES["mid_accuracy"]
 SIDES = (0.27, 0.29, 0.30, 0.33)
@@ -327,7 +327,7 @@ def test_lcs_batch_is_read_only_with_identity(push: SimpleNamespace) -> None:
 
 # --- the perf benchmark (output and schema only; timings are never checked) ---------------------
 def test_perf_writes_rows_files_figure_and_report(tmp_path: Path) -> None:
-    from bench.perf import COLUMNS, PerfSettings, perf_report_section, read_perf, run_perf
+    from c3bench.bench.perf import COLUMNS, PerfSettings, perf_report_section, read_perf, run_perf
 
     settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3-clarabel"),
                             repeats=2, warmup=1, iterations=2, results_dir=tmp_path)

@@ -11,14 +11,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from problems.config import load_config
-from problems.lcs_batch import BatchLinearizer
-from problems.mpc import build_mpc
-from problems.scene import build_scene
-from problems.suites import sample_states, scripted_push
-from solvers.c3 import C3Options
-from solvers.fast import FastC3Plus, RiccatiOptions
-from solvers.fast_jax import (
+from c3bench.problems.config import load_config
+from c3bench.problems.lcs_batch import BatchLinearizer
+from c3bench.problems.mpc import build_mpc
+from c3bench.problems.scene import build_scene
+from c3bench.problems.suites import sample_states, scripted_push
+from c3bench.solvers.c3 import C3Options
+from c3bench.solvers.fast import FastC3Plus, RiccatiOptions
+from c3bench.solvers.fast_jax import (
     JaxC3Plus,
     JaxUnavailable,
     back_substitution,

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from problems.instance import Problem, load_instances
-from problems.suites import generate_suite
-from solvers import registry
-from solvers.base import Settings, WarmStart, settings_for
-from solvers.lcp import natural_residual
-from solvers.residuals import residuals
+from c3bench.problems.instance import Problem, load_instances
+from c3bench.problems.suites import generate_suite
+from c3bench.solvers import registry
+from c3bench.solvers.base import Settings, WarmStart, settings_for
+from c3bench.solvers.lcp import natural_residual
+from c3bench.solvers.residuals import residuals
 
 NAMES = ("lemke", "pgs")
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from problems.config import load_config
-from problems.lcs import LCS, linearize
-from problems.scene import Plant, build_scene, home_state
-from problems.suites import scripted_push
-from solvers.lcp import lemke
+from c3bench.problems.config import load_config
+from c3bench.problems.lcs import LCS, linearize
+from c3bench.problems.scene import Plant, build_scene, home_state
+from c3bench.problems.suites import scripted_push
+from c3bench.solvers.lcp import lemke
 
 CONFIG = load_config()
 DT = CONFIG.mpc.dt

@@ -9,18 +9,18 @@ import numpy as np
 import pytest
 from conftest import enumerated_optimum, pick
 
-from problems.instance import Problem
-from solvers import registry
-from solvers.backends.miqp import (
+from c3bench.problems.instance import Problem
+from c3bench.solvers import registry
+from c3bench.solvers.backends.miqp import (
     GurobiMIQP,
     enumerate_modes,
     refine_on_face,
     search_modes,
     solve_mode,
 )
-from solvers.base import Settings, settings_for
-from solvers.projection import c3plus_projection
-from solvers.residuals import complementarity_violation, cost_error, primal_residual
+from c3bench.solvers.base import Settings, settings_for
+from c3bench.solvers.projection import c3plus_projection
+from c3bench.solvers.residuals import complementarity_violation, cost_error, primal_residual
 
 MID = settings_for("mid_accuracy", time_limit=60.0)
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from conftest import enumerated_optimum, pick
 
-from problems.instance import Problem
-from solvers import registry
-from solvers.base import settings_for
-from solvers.residuals import complementarity_violation, primal_residual
+from c3bench.problems.instance import Problem
+from c3bench.solvers import registry
+from c3bench.solvers.base import settings_for
+from c3bench.solvers.residuals import complementarity_violation, primal_residual
 
 MID = settings_for("mid_accuracy", time_limit=60.0)
 

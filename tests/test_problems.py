@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.cli import main
-from problems import families
-from problems.config import MPCConfig, SceneConfig, load_config
-from problems.instance import (
+from c3bench.bench.cli import main
+from c3bench.problems import families
+from c3bench.problems.config import MPCConfig, SceneConfig, load_config
+from c3bench.problems.instance import (
     FAMILIES,
     InstanceFormatError,
     Problem,
@@ -22,9 +22,9 @@ from problems.instance import (
     problem_arrays,
     save_problem,
 )
-from problems.lcs import linearize
-from problems.mpc import HorizonLayout, build_mpc
-from problems.scene import (
+from c3bench.problems.lcs import linearize
+from c3bench.problems.mpc import HorizonLayout, build_mpc
+from c3bench.problems.scene import (
     Plant,
     RenderUnavailable,
     build_scene,
@@ -33,7 +33,7 @@ from problems.scene import (
     render_frame,
     target_state,
 )
-from problems.suites import SUITES, SuiteSpec, generate_suite, seed_rho
+from c3bench.problems.suites import SUITES, SuiteSpec, generate_suite, seed_rho
 
 CONFIG = load_config()
 TINY = SuiteSpec("tiny", n_states=1, admm_iterations=(0, 5), projection_iterations=(5,),

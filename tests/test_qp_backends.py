@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from problems.instance import Problem, load_instances
-from problems.suites import generate_suite
-from solvers import registry
-from solvers.backends import qp
-from solvers.base import QP_FAMILIES, Result, WarmStart, settings_for
-from solvers.residuals import cost_error, dual_residual, duality_gap, primal_residual
+from c3bench.problems.instance import Problem, load_instances
+from c3bench.problems.suites import generate_suite
+from c3bench.solvers import registry
+from c3bench.solvers.backends import qp
+from c3bench.solvers.base import QP_FAMILIES, Result, WarmStart, settings_for
+from c3bench.solvers.residuals import cost_error, dual_residual, duality_gap, primal_residual
 
 BACKEND_NAMES: list[str] = [backend.name for backend in qp.BACKENDS]
 

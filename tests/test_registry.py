@@ -7,10 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from problems.instance import Problem
-from solvers import registry
-from solvers.base import Backend, Result, Settings, WarmStart
-from solvers.residuals import residuals
+from c3bench.problems.instance import Problem
+from c3bench.solvers import registry
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.solvers.residuals import residuals
 
 
 class DenseKKT(Backend):

@@ -44,14 +44,14 @@ from typing import Any
 
 import numpy as np
 
-from problems import families
-from problems.instance import Problem
-from problems.mpc import MPC, HorizonLayout
-from solvers.base import Backend, Result, Settings, WarmStart
-from solvers.c3 import C3Options, C3Solution, rollout_vector, solve_c3, to_full_steps
-from solvers.registry import register
-from solvers.residuals import complementarity_violation
-from solvers.timing import Stopwatch
+from c3bench.problems import families
+from c3bench.problems.instance import Problem
+from c3bench.problems.mpc import MPC, HorizonLayout
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.solvers.c3 import C3Options, C3Solution, rollout_vector, solve_c3, to_full_steps
+from c3bench.solvers.registry import register
+from c3bench.solvers.residuals import complementarity_violation
+from c3bench.solvers.timing import Stopwatch
 
 SOLUTION_POINTS: tuple[str, ...] = ("delta", "z", "rollout")
 _NOT_PASSED = {"variant", "qp_settings", "projection_settings"}

@@ -34,9 +34,9 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from problems.instance import Problem
-from solvers.base import EQUALITY_QP_FAMILIES, Backend, Result, Settings, WarmStart
-from solvers.equilibrated import (
+from c3bench.problems.instance import Problem
+from c3bench.solvers.base import EQUALITY_QP_FAMILIES, Backend, Result, Settings, WarmStart
+from c3bench.solvers.equilibrated import (
     ABLATIONS,
     DTYPES,
     EquilibratedKKT,
@@ -45,8 +45,8 @@ from solvers.equilibrated import (
     diagnose,
     raw_schur,
 )
-from solvers.registry import register
-from solvers.timing import Stopwatch
+from c3bench.solvers.registry import register
+from c3bench.solvers.timing import Stopwatch
 
 
 def steps_from_options(options: dict[str, Any]) -> EquilibrationSteps:

@@ -28,11 +28,11 @@ from typing import Any
 
 import numpy as np
 
-from problems.instance import Problem
-from solvers.base import Backend, Result, Settings, WarmStart
-from solvers.lcp import LCPSolution, lemke, natural_residual, projected_gauss_seidel
-from solvers.registry import register
-from solvers.timing import Stopwatch
+from c3bench.problems.instance import Problem
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.solvers.lcp import LCPSolution, lemke, natural_residual, projected_gauss_seidel
+from c3bench.solvers.registry import register
+from c3bench.solvers.timing import Stopwatch
 
 PGS_DEFAULT_MAX_SWEEPS = 10_000
 

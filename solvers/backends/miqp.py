@@ -52,13 +52,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sparse
 
-import solvers.projection  # noqa: F401 - registers ``c3plus_closed_form``
-from problems.instance import Problem
-from solvers.backends.nlp import quiet_stdout
-from solvers.base import COMPLEMENTARITY_FAMILIES, Backend, Result, Settings, WarmStart
-from solvers.registry import register
-from solvers.residuals import complementarity_violation, primal_residual
-from solvers.timing import Stopwatch, single_thread_blas
+import c3bench.solvers.projection  # noqa: F401 - registers ``c3plus_closed_form``
+from c3bench.problems.instance import Problem
+from c3bench.solvers.backends.nlp import quiet_stdout
+from c3bench.solvers.base import COMPLEMENTARITY_FAMILIES, Backend, Result, Settings, WarmStart
+from c3bench.solvers.registry import register
+from c3bench.solvers.residuals import complementarity_violation, primal_residual
+from c3bench.solvers.timing import Stopwatch, single_thread_blas
 
 MODE_QP_TOLERANCE = 1e-10
 """Clarabel's gap and feasibility tolerances for the QP of one mode."""

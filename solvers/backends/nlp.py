@@ -53,11 +53,11 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sparse
 
-from problems.instance import Problem
-from solvers.base import COMPLEMENTARITY_FAMILIES, Backend, Result, Settings, WarmStart
-from solvers.registry import register
-from solvers.residuals import complementarity_violation, primal_residual
-from solvers.timing import Stopwatch
+from c3bench.problems.instance import Problem
+from c3bench.solvers.base import COMPLEMENTARITY_FAMILIES, Backend, Result, Settings, WarmStart
+from c3bench.solvers.registry import register
+from c3bench.solvers.residuals import complementarity_violation, primal_residual
+from c3bench.solvers.timing import Stopwatch
 
 DEFAULT_EPS0 = 1e-1
 DEFAULT_EPS_FACTOR = 0.1

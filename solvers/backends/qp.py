@@ -73,10 +73,10 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from problems.instance import Problem
-from solvers.base import QP_FAMILIES, Backend, Result, Settings, WarmStart
-from solvers.registry import register
-from solvers.timing import Stopwatch
+from c3bench.problems.instance import Problem
+from c3bench.solvers.base import QP_FAMILIES, Backend, Result, Settings, WarmStart
+from c3bench.solvers.registry import register
+from c3bench.solvers.timing import Stopwatch
 
 # ----------------------------------------------------------------------------------------
 # Shared conversions
@@ -716,7 +716,7 @@ class _OCPRows:
     def detect(cls, problem: Problem, form: TwoSidedForm) -> _OCPRows | None:
         """The layout of a horizon problem (``meta["layout"]``), or ``None`` when the rows
         do not fit it (a row spanning non-adjacent stages, a gap that is no identity...)."""
-        from problems.mpc import HorizonLayout
+        from c3bench.problems.mpc import HorizonLayout
 
         table = problem.meta.get("layout") if isinstance(problem.meta, dict) else None
         if not table:
