@@ -1,13 +1,19 @@
-"""The ``c3bench`` command line (also ``python -m c3bench``).
+"""The ``c3bench`` command line (also ``python -m c3bench``): the one parser of every command.
 
-Subcommands:
+Subcommands: ``problems generate`` / ``problems list`` (instances), ``solvers`` (the
+registry), ``run`` / ``report`` / ``compare`` (the benchmark), ``perf`` (control-step time),
+``closed-loop`` / ``closed-loop-suite`` / ``sweep`` (C3 / C3+ driving the MuJoCo cube; their
+handlers are in :mod:`bench.cli_closed_loop`). README's "Command line" section is the synopsis
+(``tests/test_cli.py`` checks it against this parser).
 
-* ``problems generate --suite quick --out DIR``: write a suite's instances.
-* ``problems list DIR``: a table of the instances below DIR by family.
-* ``solvers``: the registry: every backend, its availability, version and families.
-* ``run``, ``report``, ``compare``: the benchmark (``bench/commands.py``).
-* ``closed-loop``, ``closed-loop-suite``, ``sweep``: C3 / C3+ driving the MuJoCo cube.
-* ``perf``: control-step time of the fast paths against the reference controller.
+Conventions, the same in every command:
+
+* a list option takes its values space or comma separated, or repeated: ``--x a b``,
+  ``--x a,b`` and ``--x a --x b`` are equal (:class:`bench.cli_options.ListAction`);
+* ``--results ROOT`` is the results root; each command reads and writes its own folder under
+  it (:mod:`bench.store`), default ``results``;
+* exit codes: 0 success, 1 error (nothing to read, a failed command), 2 bad input (one line
+  ``error: ...``, never a traceback), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -16,43 +22,59 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
-from c3bench.problems.suites import Capture
+from c3bench.bench import store
+from c3bench.bench.cli_closed_loop import cmd_closed_loop, cmd_closed_loop_suite, cmd_sweep
+from c3bench.bench.cli_options import (
+    EXIT_ERROR,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    Parser,
+    add_executor,
+    add_list,
+    add_quiet,
+    add_results,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
+from c3bench.bench.planning import DEFAULT_SETTINGS, PRECISIONS, STARTS
+from c3bench.problems.capture import SUITES, Capture
+from c3bench.problems.errors import C3BenchError, InputError
+from c3bench.problems.names import Family, Precision, Profile, Start, Variant
 
 CAPTURE_QP_BACKEND = "clarabel"
 """QP solver of the controller runs whose iterates become suite instances (exact and
 deterministic; the seed's equilibrated method with its ridge is not exact)."""
 
 
-def _capture_for(name: str) -> Capture | None:
+def load_plugins(entries: Sequence[str]) -> None:
+    """Load ``MODULE`` / ``MODULE:FUNCTION`` plugins; a missing one is an :class:`InputError`."""
+    from c3bench.solvers import registry
+
+    for entry in entries:
+        try:
+            registry.import_plugins([entry])
+        except (ImportError, AttributeError) as error:
+            raise InputError(f"cannot load plugin {entry!r}: {error}") from error
+
+
+# --- problems, solvers --------------------------------------------------------------------------
+def capture_for(name: str) -> Capture | None:
     """The ADMM-iterate source behind the QP and projection families.
 
     ``controller`` (default): real C3+ runs (the seed's schedule, 10 iterations) at each
-    sampled state; ``provisional``: the documented deterministic stand-in.
+    sampled state; ``provisional``: the documented deterministic stand-in (``None``).
     """
     if name == "provisional":
         return None
     from c3bench.solvers.c3 import C3Options, controller_capture
 
-    return controller_capture(C3Options(variant="c3plus", qp_backend=CAPTURE_QP_BACKEND))
-
-
-def cmd_problems_generate(args: argparse.Namespace) -> int:
-    from c3bench.problems.config import load_config
-    from c3bench.problems.suites import SUITES, generate_suite
-
-    if args.suite not in SUITES:
-        print(f"error: unknown suite {args.suite!r}; known: {', '.join(SUITES)}",
-              file=sys.stderr)
-        return 2
-    config = load_config(args.config)
-    paths = generate_suite(args.suite, args.out, config=config,
-                           capture=_capture_for(args.capture), progress=not args.quiet)
-    print(f"wrote {len(paths)} instances to {args.out}")
-    print(instance_table(Path(args.out)).to_string(index=False))
-    return 0
+    return controller_capture(C3Options(variant=Variant.C3PLUS, qp_backend=CAPTURE_QP_BACKEND))
 
 
 def instance_table(directory: Path) -> pd.DataFrame:
@@ -62,40 +84,52 @@ def instance_table(directory: Path) -> pd.DataFrame:
     """
     from c3bench.problems.instance import load_instances
 
-    rows = [p.summary() for p in load_instances(directory)]
-    if not rows:
-        return pd.DataFrame(columns=["family", "count", "variables", "equality_rows",
-                                     "inequality_rows", "bounded_variables",
-                                     "complementarity_pairs"])
-    frame = pd.DataFrame(rows)
     columns = ["variables", "equality_rows", "inequality_rows", "bounded_variables",
                "complementarity_pairs"]
+    rows = [p.summary() for p in load_instances(directory)]
+    if not rows:
+        return pd.DataFrame(columns=["family", "count", *columns])
 
     def span(values: pd.Series) -> str:
         low, high = int(values.min()), int(values.max())
         return str(low) if low == high else f"{low}-{high}"
 
-    table = frame.groupby("family", sort=True).agg(
+    table = pd.DataFrame(rows).groupby("family", sort=True).agg(
         count=("name", "size"), **{c: (c, span) for c in columns})
     return table.reset_index()
 
 
+def cmd_problems_generate(args: argparse.Namespace) -> int:
+    """Write a suite's instances and print their table."""
+    from c3bench.problems.config import load_config
+    from c3bench.problems.suites import generate_suite
+
+    config = load_config(args.config)
+    paths = generate_suite(args.suite, args.out, config=config,
+                           capture=capture_for(args.capture), progress=not args.quiet)
+    print(f"wrote {len(paths)} instances to {args.out}")
+    print(instance_table(Path(args.out)).to_string(index=False))
+    return EXIT_OK
+
+
 def cmd_problems_list(args: argparse.Namespace) -> int:
+    """Print the table of the instances below a directory."""
     directory = Path(args.directory)
     if not directory.is_dir():
-        print(f"error: {directory} is not a directory", file=sys.stderr)
-        return 2
+        raise InputError(f"{directory} is not a directory")
     table = instance_table(directory)
     if table.empty:
         print(f"no instances under {directory}")
-        return 1
+        return EXIT_ERROR
     print(table.to_string(index=False))
-    return 0
+    return EXIT_OK
 
 
 def cmd_solvers(args: argparse.Namespace) -> int:
+    """Print every registered backend: availability, version, families, precisions."""
     from c3bench.solvers import registry
 
+    load_plugins(args.plugin)
     rows = [{
         "solver": info.name,
         "available": "yes" if info.available else "no",
@@ -104,185 +138,321 @@ def cmd_solvers(args: argparse.Namespace) -> int:
         "precisions": ",".join(info.precisions),
         "note": info.reason or info.description,
     } for info in registry.available()]
-    frame = pd.DataFrame(rows)
     with pd.option_context("display.max_colwidth", 70, "display.width", 200):
-        print(frame.to_string(index=False))
+        print(pd.DataFrame(rows).to_string(index=False))
     for module, error in registry.module_errors().items():
         print(f"warning: backend module {module} failed to load: {error}", file=sys.stderr)
-    return 0
+    return EXIT_OK
 
 
-def cmd_closed_loop(args: argparse.Namespace) -> int:
-    from c3bench.bench.closed_loop import (
-        ControllerSpec,
-        render_run,
-        run_closed_loop,
-        run_summary,
-        write_run,
-    )
-    from c3bench.problems.config import load_config
-    from c3bench.problems.scene import RenderUnavailable, build_scene
+# --- run, report, compare, perf ---------------------------------------------------------------
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run a suite (generating its instances first when missing), then write the report."""
+    from c3bench.bench.report import write_report
+    from c3bench.bench.runner import run_suite
 
-    config = load_config(args.config)
-    spec = ControllerSpec(controller=args.controller, qp_backend=args.qp_backend,
-                          projection=args.projection, rho_schedule=args.rho_schedule,
-                          admm_iterations=args.iterations, model_l=args.model_l,
-                          samples=args.samples, weighting=not args.no_weighting,
-                          seed=args.seed, feedback=args.feedback)
-    trajectory, records, outcome = run_closed_loop(spec, config, args.duration,
-                                                   progress=not args.quiet)
-    scene = build_scene(config=config)
-    out = Path(args.out) if args.out else Path("results") / "closed_loop" / "runs" / spec.label()
-    write_run(out, trajectory, records, scene, run_summary(spec, trajectory, outcome))
-    print(f"controller        {spec.label()}")
-    print(f"success           {'yes' if outcome.success else 'no'}")
-    print(f"angle error       {outcome.angle_error:.4f} rad at t = {args.duration:g} s "
-          f"(theta = {outcome.final_angle:.4f}, target {config.mpc.target_angle:g})")
-    print(f"failure mode      {outcome.failure_mode} ({outcome.failure_label}): "
-          f"{outcome.failure_reason}")
-    print(f"control step      median {1e3 * outcome.median_step_time:.1f} ms, "
-          f"p95 {1e3 * outcome.p95_step_time:.1f} ms (LCS build median "
-          f"{1e3 * outcome.median_lcs_time:.1f} ms, solve "
-          f"{1e3 * outcome.median_solve_time:.1f} ms)")
-    print(f"fallbacks / NaNs  {outcome.fallback_count} / {outcome.nan_count}")
-    print(f"records           {out}")
-    if args.render:
-        try:
-            path = render_run(trajectory.states, scene, args.render, config.mpc.dt)
-            print(f"animation         {path}")
-        except RenderUnavailable as error:
-            print(f"animation skipped: {error}", file=sys.stderr)
-    return 0
+    load_plugins(args.plugin)
+    try:
+        summary = run_suite(
+            args.suite, results_dir=args.results, solvers=args.solvers,
+            settings=args.settings, precisions=args.precision, starts=args.start,
+            families=args.families, jobs=args.jobs, scheduler=args.scheduler,
+            rerun=args.rerun, repeats=args.repeats, time_limit=args.time_limit,
+            reference_time_limit=args.reference_time_limit,
+            capture=capture_for("controller"), progress=not args.quiet,
+            max_cells=args.max_cells, preload=tuple(args.plugin))
+    except KeyboardInterrupt:
+        print("interrupted; finished cells are stored, run again to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    for name, reason in sorted(summary.skipped_solvers.items()):
+        print(f"skipped {name}: {reason}", file=sys.stderr)
+    print(f"{summary.suite}: {summary.planned} cells planned, {summary.already_done} already "
+          f"stored, {summary.ran} run ({summary.failed} failed), "
+          f"{summary.references_computed} references computed"
+          + (f", {summary.warm_without_reference} warm cells without a reference start"
+             if summary.warm_without_reference else "")
+          + (f", {summary.stale_removed} stale cells of changed instances removed"
+             if summary.stale_removed else ""))
+    print(f"solver output: {store.SuitePaths(summary.root).solver_log}")
+    if not args.no_report:
+        print(f"report: {write_report(summary.suite, args.results)}")
+    return EXIT_OK
 
 
-def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
+def cmd_report(args: argparse.Namespace) -> int:
+    """Write ``ROOT/<suite>/report.md`` and its figures."""
+    from c3bench.bench.report import write_report
+
+    print(f"report: {write_report(args.suite, args.results, figures=not args.no_figures)}")
+    return EXIT_OK
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Print who wins between two solvers, per family and settings."""
+    from c3bench.bench.compare import compare
+
+    print(compare(args.suite, args.a, args.b, args.results), end="")
+    return EXIT_OK
+
+
+def cmd_perf(args: argparse.Namespace) -> int:
+    """Time one C3+ control step per backend and number of samples."""
+    from c3bench.bench.perf import PERF_FIGURE, PerfSettings, run_perf
+
+    settings = PerfSettings(samples=tuple(args.samples), backends=tuple(args.backend),
+                            precisions=tuple(args.precision), device=args.device,
+                            repeats=args.repeats, warmup=args.warmup,
+                            iterations=args.iterations, reference_budget=args.reference_budget,
+                            seed=args.seed, results_dir=Path(args.results), cpu=args.cpu)
+    run_perf(settings)
+    written = [*store.perf_files(settings.results_dir),
+               store.perf_dir(settings.results_dir) / "figures" / PERF_FIGURE]
+    print("# wrote " + ", ".join(str(path) for path in written if path.exists()))
+    return EXIT_OK
+
+
+# --- the parser ---------------------------------------------------------------------------------
+def _add_problems(sub: Any) -> None:
+    """``problems generate`` and ``problems list``."""
+    problems = sub.add_parser("problems", help="generate and list subproblem instances",
+                              description="Generate a suite's instances, or list instances.")
+    problems_sub = problems.add_subparsers(dest="problems_command", required=True,
+                                           metavar="{generate,list}",
+                                           help="what to do with instances")
+    generate = problems_sub.add_parser("generate", help="write a suite's instances",
+                                       description="Write a suite's instances to a directory.")
+    generate.add_argument("--suite", choices=tuple(SUITES), default="quick",
+                          help="suite (default: quick)")
+    generate.add_argument("--out", required=True, metavar="DIR",
+                          help="instance directory to write (not a results root)")
+    generate.add_argument("--config", default=None, metavar="FILE",
+                          help="task constants (TOML; default: the packaged cube_tipping.toml)")
+    generate.add_argument("--capture", choices=("controller", "provisional"),
+                          default="controller",
+                          help="source of the ADMM iterates behind the QP and projection "
+                               "families (default: controller)")
+    add_quiet(generate)
+    generate.set_defaults(handler=cmd_problems_generate)
+    listing = problems_sub.add_parser("list", help="table of instances by family",
+                                      description="Per family: count, variables, rows, pairs.")
+    listing.add_argument("directory", metavar="DIR", help="directory holding instances")
+    listing.set_defaults(handler=cmd_problems_list)
+
+
+def _add_plugin(parser: argparse.ArgumentParser, loaded: str) -> None:
+    """``--plugin MODULE[:FUNCTION]``."""
+    add_list(parser, "--plugin", metavar="MODULE[:FUNCTION]", default=(),
+             help=f"plugins that register extra backends: MODULE is imported, then "
+                  f"FUNCTION called when given; loaded {loaded}", default_text="none")
+
+
+def _add_benchmark(sub: Any) -> None:
+    """``solvers``, ``run``, ``report`` and ``compare``."""
+    solvers = sub.add_parser("solvers", help="list solver backends",
+                             description="Every backend: availability, version, families.")
+    _add_plugin(solvers, "before listing")
+    solvers.set_defaults(handler=cmd_solvers)
+
+    run = sub.add_parser("run", help="run a benchmark suite (resumable)",
+                         description="Run every (instance, solver, settings, precision, "
+                                     "start) cell of a suite; finished cells are kept and "
+                                     "skipped on the next run.")
+    run.add_argument("--suite", default="quick", metavar="NAME",
+                     help=f"suite ({', '.join(SUITES)}, or a stored one; default: quick)")
+    add_results(run, "writes ROOT/<suite>/")
+    add_list(run, "--solvers", metavar="NAME", help="backends",
+             default_text="every available one")
+    add_list(run, "--settings", metavar="PROFILE", choices=tuple(Profile),
+             default=DEFAULT_SETTINGS, help="settings profiles")
+    add_list(run, "--precision", metavar="PRECISION", choices=tuple(Precision),
+             default=PRECISIONS, help="precisions, float32 only where a backend runs in it")
+    add_list(run, "--start", metavar="START", choices=tuple(Start), default=STARTS,
+             help="cold and/or warm starts")
+    add_list(run, "--families", metavar="FAMILY", choices=tuple(Family),
+             help="restrict to these families", default_text="all")
+    add_executor(run, "cells")
+    run.add_argument("--repeats", type=positive_int, default=3, metavar="N",
+                     help="timed repeats after one untimed warm-up (default: 3)")
+    run.add_argument("--time-limit", type=positive_float, default=10.0, metavar="S",
+                     help="seconds per solve (default: 10)")
+    run.add_argument("--reference-time-limit", type=positive_float, default=60.0, metavar="S",
+                     help="seconds per reference solve (default: 60)")
+    run.add_argument("--max-cells", type=nonnegative_int, default=None, metavar="N",
+                     help="stop after this many cells (the rest stay for a later run)")
+    _add_plugin(run, "here and in every worker")
+    run.add_argument("--no-report", action="store_true", help="do not write the report")
+    add_quiet(run)
+    run.set_defaults(handler=cmd_run)
+
+    report = sub.add_parser("report", help="write ROOT/<suite>/report.md and figures",
+                            description="Write a stored suite's report, figures and summary.")
+    report.add_argument("--suite", default="quick", metavar="NAME",
+                        help="stored suite (default: quick)")
+    add_results(report, "reads and writes ROOT/<suite>/")
+    report.add_argument("--no-figures", action="store_true", help="tables only")
+    report.set_defaults(handler=cmd_report)
+
+    compare = sub.add_parser("compare", help="compare two solvers on a stored suite",
+                             description="Who wins between A and B, per family and settings, "
+                                         "on success, time and accuracy.")
+    compare.add_argument("a", metavar="A", help="first solver")
+    compare.add_argument("b", metavar="B", help="second solver")
+    compare.add_argument("--suite", default="quick", metavar="NAME",
+                         help="stored suite (default: quick)")
+    add_results(compare, "reads ROOT/<suite>/")
+    compare.set_defaults(handler=cmd_compare)
+
+
+def _add_perf(sub: Any) -> None:
+    """``perf``."""
+    from c3bench.bench.perf import BACKENDS, DEFAULT_SAMPLES, DEVICES, PerfSettings
+
+    defaults = PerfSettings()
+    perf = sub.add_parser("perf", help="time one C3+ control step per backend and samples",
+                          description="Time the LCS build plus the ADMM of one C3+ control "
+                                      "step (bench/perf.py).")
+    add_list(perf, "--samples", metavar="N", item=positive_int, default=DEFAULT_SAMPLES,
+             help="numbers of model samples")
+    add_list(perf, "--backend", metavar="NAME", choices=BACKENDS, default=BACKENDS,
+             help="backends")
+    add_list(perf, "--precision", metavar="PRECISION", choices=tuple(Precision),
+             default=defaults.precisions, help="precisions of the c3plus backends")
+    perf.add_argument("--device", choices=DEVICES, default=defaults.device,
+                      help="device of the JAX backend; the others run on the CPU "
+                           "(default: cpu)")
+    perf.add_argument("--repeats", type=positive_int, default=defaults.repeats, metavar="N",
+                      help=f"timed control steps each (default: {defaults.repeats})")
+    perf.add_argument("--warmup", type=nonnegative_int, default=defaults.warmup, metavar="N",
+                      help=f"untimed steps first (default: {defaults.warmup})")
+    perf.add_argument("--iterations", type=positive_int, default=defaults.iterations,
+                      metavar="N",
+                      help=f"ADMM iterations per step (default: {defaults.iterations})")
+    perf.add_argument("--reference-budget", type=positive_float,
+                      default=defaults.reference_budget, metavar="S",
+                      help="seconds allowed per reference-controller configuration "
+                           f"(default: {defaults.reference_budget:g})")
+    perf.add_argument("--seed", type=nonnegative_int, default=defaults.seed, metavar="N",
+                      help=f"seed of the sampled cube sides (default: {defaults.seed})")
+    perf.add_argument("--cpu", type=nonnegative_int, default=None, metavar="CORE",
+                      help="pin the process to this CPU core; XLA may otherwise use a "
+                           "second core for the JAX backend")
+    add_results(perf, "writes ROOT/perf/")
+    perf.set_defaults(handler=cmd_perf)
+
+
+def _add_closed_loop(sub: Any) -> None:
+    """``closed-loop``, ``closed-loop-suite`` and ``sweep``."""
+    from c3bench.bench.closed_loop import CONTROLLERS, ControllerSpec
     from c3bench.bench.closed_loop_suite import (
         CLOSED_LOOP_SUITES,
-        RESULTS_DIR,
-        run_cases,
-        write_report,
+        SWEEP_DTS,
+        SWEEP_MODEL_LS,
+        SWEEP_Q_BOXES,
+        SWEEP_SCHEDULES,
     )
+    from c3bench.solvers.c3 import RHO_SCHEDULES
 
-    if args.suite not in CLOSED_LOOP_SUITES:
-        print(f"error: unknown closed-loop suite {args.suite!r}; known: "
-              f"{', '.join(CLOSED_LOOP_SUITES)}", file=sys.stderr)
-        return 2
-    directory = Path(args.results) if args.results else RESULTS_DIR / args.suite
-    run = run_cases(CLOSED_LOOP_SUITES[args.suite], directory, jobs=args.jobs,
-                    scheduler=args.scheduler, rerun=args.rerun, progress=not args.quiet)
-    report = write_report(run, f"suite `{args.suite}`", render=not args.no_render)
-    succeeded = sum(bool(row.get("success")) for row in run.rows)
-    print(f"{len(run.rows)} runs ({run.skipped} stored), {succeeded} succeeded; report: {report}")
-    return 0
+    spec = ControllerSpec()
+    loop = sub.add_parser("closed-loop", help="drive the MuJoCo cube with C3 / C3+",
+                          description="One closed-loop run: the controller replans every dt "
+                                      "from the measured MuJoCo state.")
+    loop.add_argument("--controller", choices=CONTROLLERS, default=spec.controller,
+                      help=f"controller (default: {spec.controller})")
+    loop.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
+                      help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    loop.add_argument("--projection", default=spec.projection, metavar="NAME",
+                      help=f"C3's MIQP projection backend (default: {spec.projection})")
+    loop.add_argument("--rho-schedule", choices=RHO_SCHEDULES, default=spec.rho_schedule,
+                      help=f"ADMM weight schedule (default: {spec.rho_schedule})")
+    loop.add_argument("--iterations", type=positive_int, default=spec.admm_iterations,
+                      metavar="N",
+                      help=f"ADMM iterations per step (default: {spec.admm_iterations})")
+    loop.add_argument("--samples", type=positive_int, default=spec.samples, metavar="N",
+                      help=f"robust variants: sampled models (default: {spec.samples})")
+    loop.add_argument("--no-weighting", action="store_true",
+                      help="robust variants: uniform sample weights")
+    loop.add_argument("--feedback", action="store_true",
+                      help="low-level PD tracking of the plan's ball motion between steps")
+    loop.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
+                      help=f"cube side of the model (m; default: {spec.model_l:g})")
+    loop.add_argument("--duration", type=positive_float, default=2.0, metavar="S",
+                      help="seconds of simulation, a multiple of dt (default: 2)")
+    loop.add_argument("--seed", type=nonnegative_int, default=spec.seed, metavar="N",
+                      help=f"seed of the sampled model sides (default: {spec.seed})")
+    loop.add_argument("--config", default=None, metavar="FILE",
+                      help="task constants (TOML; default: the packaged cube_tipping.toml)")
+    add_results(loop, "writes ROOT/closed_loop/runs/<controller label>/")
+    loop.add_argument("--render", default=None, metavar="GIF",
+                      help="also write an animated GIF of the run to this path")
+    add_quiet(loop)
+    loop.set_defaults(handler=cmd_closed_loop)
 
+    suite = sub.add_parser("closed-loop-suite",
+                           help="closed-loop runs: backends x controllers x seeds",
+                           description="Run a closed-loop suite (resumable) and write its "
+                                       "report.")
+    suite.add_argument("--suite", choices=tuple(CLOSED_LOOP_SUITES), default="quick",
+                       help="closed-loop suite (default: quick)")
+    add_executor(suite, "runs")
+    add_results(suite, "writes ROOT/closed_loop/<suite>/")
+    suite.add_argument("--no-render", action="store_true", help="skip the animation")
+    add_quiet(suite)
+    suite.set_defaults(handler=cmd_closed_loop_suite)
 
-def cmd_sweep(args: argparse.Namespace) -> int:
-    from c3bench.bench.closed_loop_suite import RESULTS_DIR, run_cases, sweep_cases, write_report
-
-    cases = sweep_cases(args.dt, args.rho_schedule, args.q_box, args.model_l, args.qp_backend)
-    directory = Path(args.results) if args.results else RESULTS_DIR / "sweep"
-    run = run_cases(cases, directory, jobs=args.jobs, scheduler=args.scheduler,
-                    rerun=args.rerun, progress=not args.quiet)
-    report = write_report(run, "hyperparameter sweep", render=False)
-    print(f"{len(run.rows)} runs ({run.skipped} stored); report: {report}")
-    return 0
+    sweep = sub.add_parser("sweep", help="failure-mode map: dt x rho schedule x Q_box x l",
+                           description="C3+ over a grid of hyperparameters; the report maps "
+                                       "each combination to its failure mode.")
+    add_list(sweep, "--dt", metavar="S", item=positive_float, default=SWEEP_DTS,
+             help="control periods (s)")
+    add_list(sweep, "--rho-schedule", metavar="SCHEDULE", choices=RHO_SCHEDULES,
+             default=SWEEP_SCHEDULES, help="ADMM weight schedules")
+    add_list(sweep, "--q-box", metavar="Q", item=positive_float, default=SWEEP_Q_BOXES,
+             help="cube-pose weights Q_box")
+    add_list(sweep, "--model-l", metavar="L", item=positive_float, default=SWEEP_MODEL_LS,
+             help="cube sides of the model (m)")
+    sweep.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
+                       help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    add_executor(sweep, "runs")
+    add_results(sweep, "writes ROOT/closed_loop/sweep/")
+    add_quiet(sweep)
+    sweep.set_defaults(handler=cmd_sweep)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="c3bench",
-        description="Benchmark solvers on the subproblems of contact-implicit MPC (C3 / C3+).")
+    """The parser of every command (each subcommand sets ``handler``)."""
     from c3bench import __version__
 
-    parser.add_argument("--version", action="version", version=f"c3bench {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    problems = sub.add_parser("problems", help="generate and list subproblem instances")
-    problems_sub = problems.add_subparsers(dest="problems_command", required=True)
-    generate = problems_sub.add_parser("generate", help="write a suite's instances")
-    generate.add_argument("--suite", default="quick", help="quick, default or full")
-    generate.add_argument("--out", required=True, help="output directory")
-    generate.add_argument("--config", default=None, help="task constants (TOML)")
-    generate.add_argument("--capture", choices=("controller", "provisional"),
-                          default="controller",
-                          help="source of the ADMM iterates behind the QP families")
-    generate.add_argument("--quiet", action="store_true", help="no progress bar")
-    generate.set_defaults(handler=cmd_problems_generate)
-    listing = problems_sub.add_parser("list", help="table of instances by family")
-    listing.add_argument("directory")
-    listing.set_defaults(handler=cmd_problems_list)
-
-    solvers = sub.add_parser("solvers", help="list solver backends")
-    solvers.set_defaults(handler=cmd_solvers)
-
-    loop = sub.add_parser("closed-loop", help="drive the MuJoCo cube with C3 / C3+")
-    loop.add_argument("--controller", choices=("c3", "c3plus", "c3plus-robust", "c3plus-fast",
-                                               "c3plus-fast-robust"),
-                      default="c3plus")
-    loop.add_argument("--qp-backend", default="clarabel", help="registry name of the QP solver")
-    loop.add_argument("--projection", default="scip", help="C3's MIQP projection backend")
-    loop.add_argument("--rho-schedule", choices=("geometric", "adaptive", "residual_balancing"),
-                      default="geometric")
-    loop.add_argument("--iterations", type=int, default=10, help="ADMM iterations per step")
-    loop.add_argument("--samples", type=int, default=16, help="robust variant: sampled models")
-    loop.add_argument("--no-weighting", action="store_true",
-                      help="robust variant: uniform sample weights")
-    loop.add_argument("--feedback", action="store_true",
-                      help="low-level PD tracking of the plan's ball motion between steps")
-    loop.add_argument("--model-l", type=float, default=0.29, help="cube side of the model")
-    loop.add_argument("--duration", type=float, default=2.0, help="seconds of simulation")
-    loop.add_argument("--seed", type=int, default=0)
-    loop.add_argument("--config", default=None, help="task constants (TOML)")
-    loop.add_argument("--out", default=None, help="directory for the run's records")
-    loop.add_argument("--render", default=None, help="write an animated GIF here")
-    loop.add_argument("--quiet", action="store_true", help="no progress bar")
-    loop.set_defaults(handler=cmd_closed_loop)
-
-    loop_suite = sub.add_parser("closed-loop-suite",
-                                help="closed-loop runs: backends x controllers x seeds")
-    loop_suite.add_argument("--suite", default="quick", help="quick or full")
-    sweep = sub.add_parser("sweep", help="failure-mode map: dt x rho schedule x Q_box x l")
-    sweep.add_argument("--dt", type=float, nargs="+", default=[0.05, 0.1])
-    sweep.add_argument("--rho-schedule", nargs="+", default=["geometric", "adaptive"],
-                       choices=("geometric", "adaptive", "residual_balancing"))
-    sweep.add_argument("--q-box", type=float, nargs="+", default=[2e4, 2e5])
-    sweep.add_argument("--model-l", type=float, nargs="+", default=[0.29, 0.30])
-    sweep.add_argument("--qp-backend", default="clarabel")
-    for parser_ in (loop_suite, sweep):
-        parser_.add_argument("--jobs", type=int, default=2, help="local worker processes")
-        parser_.add_argument("--scheduler", default=None, help="Dask scheduler address")
-        parser_.add_argument("--rerun", action="store_true", help="run stored cases again")
-        parser_.add_argument("--results", default=None, help="output directory")
-        parser_.add_argument("--quiet", action="store_true", help="no progress bar")
-    loop_suite.add_argument("--no-render", action="store_true", help="skip the animation")
-    loop_suite.set_defaults(handler=cmd_closed_loop_suite)
-    sweep.set_defaults(handler=cmd_sweep)
-
-    from c3bench.bench.perf import register_perf_command
-
-    register_perf_command(sub)
-
-    try:
-        from c3bench.bench.commands import register_commands
-    except ModuleNotFoundError as error:
-        if error.name != "c3bench.bench.commands":
-            raise
-    else:
-        register_commands(sub, capture=_capture_for("controller"))
+    parser = Parser(prog="c3bench",
+                    description="Benchmark solvers on the subproblems of contact-implicit MPC "
+                                "(C3 / C3+).")
+    parser.add_argument("--version", action="version", version=f"c3bench {__version__}",
+                        help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                                help="the command; `c3bench COMMAND --help` for its options")
+    _add_problems(sub)
+    _add_benchmark(sub)
+    _add_closed_loop(sub)
+    _add_perf(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Parse ``argv`` (default: the process's arguments), run the command, return its code."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as stop:  # --help, --version, usage errors
+        return stop.code if isinstance(stop.code, int) else EXIT_ERROR
     try:
         return int(args.handler(args))
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
-    except (ValueError, FileNotFoundError) as error:
+        return EXIT_INTERRUPTED
+    except ValueError as error:  # InputError and SchemaVersionError among them
         print(f"error: {error}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
+    except (C3BenchError, OSError) as error:  # nothing to read, a failed command
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_ERROR
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ Failure-mode rules (thresholds in :class:`FailureRules`), checked in this order:
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,6 +33,7 @@ import mujoco
 import numpy as np
 
 from c3bench.problems.config import Config, load_config
+from c3bench.problems.names import Variant
 from c3bench.problems.scene import Plant, Scene, build_scene, home_state
 from c3bench.solvers.timing import single_thread_blas
 
@@ -172,6 +173,16 @@ Policy = Callable[[np.ndarray, float], tuple[np.ndarray, dict[str, Any]]]
 ``nan_count`` and scalar diagnostics."""
 
 
+def _bind_input(law: Callable[[np.ndarray, float, np.ndarray], np.ndarray], u: np.ndarray
+                ) -> Callable[[np.ndarray, float], np.ndarray]:
+    """``law(x, s, u)`` with the planned input ``u`` bound: a control of ``Plant.step_with``."""
+
+    def control(x: np.ndarray, s: float) -> np.ndarray:
+        return law(x, s, u)
+
+    return control
+
+
 def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0,
              x0: np.ndarray | None = None, plant_scene: Scene | None = None,
              progress: Callable[[int, int], None] | None = None
@@ -221,8 +232,7 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
         records.append(StepRecord(t, state.copy(), u.copy(), lcs_time, solve_time, ok,
                                   nan_count, scalars))
         law = info.get("control_law") if ok else None
-        state = plant.step_with(lambda x, s, u=u, law=law: law(x, s, u), dt) if law \
-            else plant.step(u, dt)
+        state = plant.step_with(_bind_input(law, u), dt) if law else plant.step(u, dt)
         states.append(state)
         inputs.append(u)
         gaps.append(cube_geometry(scene, state)["ball_gap"])
@@ -255,11 +265,6 @@ def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
         fallback_count=int(sum(not r.ok for r in records)),
         steps=len(records),
     )
-
-
-def angle_trajectory(trajectory: Trajectory, scene: Scene) -> np.ndarray:
-    """Cube angle at every recorded time (rad)."""
-    return np.array([scene.cube_angle(x) for x in trajectory.states])
 
 
 # --- controllers in the loop ------------------------------------------------------------------
@@ -353,7 +358,7 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
     reference controller (:mod:`solvers.c3`) and the fast path (:mod:`solvers.fast`, batched
     LCS build) differ only in how the models are built and the step is solved.
     """
-    from c3bench.problems.mpc import build_mpc
+    from c3bench.problems.scene import build_mpc
     from c3bench.solvers.c3 import lcp_prediction_weights
 
     sides = spec.sample_sides() if spec.robust else np.array([spec.model_l])
@@ -361,7 +366,7 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
     mpc = build_mpc(scene, config.mpc)
     dt = config.mpc.dt
     if spec.controller in FAST_CONTROLLERS:
-        from c3bench.problems.lcs_batch import BatchLinearizer
+        from c3bench.problems.linearize_batch import BatchLinearizer
         from c3bench.solvers.fast import FastC3Plus, FastC3PlusController, fast_options
 
         linearizer = BatchLinearizer(sides, config)
@@ -374,15 +379,15 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
         def samples_of(models: Any) -> list[Any]:
             return models.samples()
 
-        def solve(models: Any, weights: np.ndarray | None, x: np.ndarray) -> Any:
+        def solve(models: Any, weights: Sequence[float] | None, x: np.ndarray) -> Any:
             return fast.step(models, x, weights)
     else:
-        from c3bench.problems.lcs import linearize
+        from c3bench.problems.linearize import linearize
         from c3bench.solvers.c3 import C3Controller, C3Options
 
         scenes = [scene] + [build_scene(l=float(side), config=config) for side in sides[1:]]
         reference = C3Controller(C3Options(
-            variant="c3" if spec.controller == "c3" else "c3plus",
+            variant=Variant.C3 if spec.controller == "c3" else Variant.C3PLUS,
             qp_backend=spec.qp_backend, projection_backend=spec.projection,
             rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
             keep_iterates=False))
@@ -393,7 +398,7 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
         def samples_of(models: Any) -> list[Any]:
             return models
 
-        def solve(models: Any, weights: np.ndarray | None, x: np.ndarray) -> Any:
+        def solve(models: Any, weights: Sequence[float] | None, x: np.ndarray) -> Any:
             if spec.robust:
                 return reference.step_robust(models, weights, mpc, x)
             return reference.step(models[0], mpc, x)
@@ -409,9 +414,9 @@ def make_policy(spec: ControllerSpec, config: Config) -> Policy:
         models = models_at(x, u_prev)
         lcs_time = time.perf_counter() - start
         start = time.perf_counter()
-        weights = None
+        weights: Sequence[float] | None = None
         if spec.robust and spec.weighting:
-            weights = lcp_prediction_weights(samples_of(models), history[-5:])
+            weights = lcp_prediction_weights(samples_of(models), history[-5:]).tolist()
         weight_time = time.perf_counter() - start
         solution = solve(models, weights, x)
         solve_time = time.perf_counter() - start

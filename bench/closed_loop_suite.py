@@ -4,7 +4,7 @@ A *case* is one closed-loop run: a controller (:class:`bench.closed_loop.Control
 constants changed from the defaults (``dt``, ``q_cube_pose``), a seed that jitters the ball's
 start (seed 0 is the nominal start) and a duration. Cases run in the runner's local process
 pool or on a Dask cluster (the same executors as ``c3bench run``); each finished case is
-written atomically to ``results/closed_loop/<suite>/cells/<case>/`` (``summary.json``,
+written atomically to ``<results>/closed_loop/<suite>/cells/<case>/`` (``summary.json``,
 ``steps.parquet``), so an interrupted suite resumes, and the rows are consolidated into
 ``results.parquet`` / ``results.csv``.
 
@@ -48,10 +48,18 @@ from c3bench.bench.closed_loop import (
     write_run,
 )
 from c3bench.problems.config import Config, load_config
+from c3bench.problems.errors import RenderUnavailable
 from c3bench.problems.instance import atomic_write_bytes
-from c3bench.problems.scene import RenderUnavailable, build_scene, home_state
+from c3bench.problems.scene import build_scene, home_state
 
-RESULTS_DIR = Path("results") / "closed_loop"
+SWEEP_DTS: tuple[float, ...] = (0.05, 0.1)
+"""Control periods of the sweep (s) unless chosen otherwise."""
+SWEEP_SCHEDULES: tuple[str, ...] = ("geometric", "adaptive")
+"""Rho schedules of the sweep unless chosen otherwise."""
+SWEEP_Q_BOXES: tuple[float, ...] = (2e4, 2e5)
+"""Cube-pose weights ``Q_box`` of the sweep unless chosen otherwise."""
+SWEEP_MODEL_LS: tuple[float, ...] = (0.29, 0.30)
+"""Model cube sides of the sweep (m) unless chosen otherwise."""
 
 
 @dataclass(frozen=True)
@@ -161,10 +169,10 @@ CLOSED_LOOP_SUITES: dict[str, list[Case]] = {
 }
 
 
-def sweep_cases(dts: Sequence[float] = (0.05, 0.1),
-                schedules: Sequence[str] = ("geometric", "adaptive"),
-                q_boxes: Sequence[float] = (2e4, 2e5),
-                model_ls: Sequence[float] = (0.29, 0.30),
+def sweep_cases(dts: Sequence[float] = SWEEP_DTS,
+                schedules: Sequence[str] = SWEEP_SCHEDULES,
+                q_boxes: Sequence[float] = SWEEP_Q_BOXES,
+                model_ls: Sequence[float] = SWEEP_MODEL_LS,
                 backend: str = "clarabel") -> list[Case]:
     """C3+ over the grid ``dt x rho schedule x Q_box x model l`` (the seed's hand-drawn map)."""
     cases = []
@@ -239,7 +247,7 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
               scheduler: str | None = None, rerun: bool = False,
               progress: bool = True) -> SuiteRun:
     """Run cases (skipping stored ones unless ``rerun``) and consolidate ``results.parquet``."""
-    from c3bench.bench.runner import DaskPool, LocalPool
+    from c3bench.bench.executors import DaskPool, Executor, LocalPool
 
     directory = Path(directory)
     cell_dir = directory / "cells"
@@ -257,7 +265,7 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
             run.skipped += 1
         else:
             todo.append(case)
-    pool: Any = DaskPool(scheduler) if scheduler else LocalPool(
+    pool: Executor = DaskPool(scheduler) if scheduler else LocalPool(
         jobs, log_path=directory / "solver_output.log")
     watchdog = 1800.0
     tasks = [(case.name, run_case, (case, str(cell_dir)), watchdog) for case in todo]

@@ -31,6 +31,7 @@ from c3bench.bench.metrics import (
     shifted_geometric_mean,
 )
 from c3bench.bench.report import fmt, markdown_table
+from c3bench.problems.errors import InputError
 
 TIE = 0.05
 PEERS: tuple[str, ...] = ("family", "settings", "precision", "start")
@@ -82,14 +83,14 @@ def compare_frame(frame: pd.DataFrame, a: str, b: str) -> list[Comparison]:
     """The comparisons of solvers ``a`` and ``b`` on a results table."""
     for name in (a, b):
         if name not in set(frame["solver"]):
-            raise ValueError(f"solver {name!r} has no results; stored: "
+            raise InputError(f"solver {name!r} has no results; stored: "
                              f"{', '.join(sorted(set(frame['solver'])))}")
     key = ["instance", "settings", "precision", "start"]
     left = frame[frame["solver"] == a].set_index(key)
     right = frame[frame["solver"] == b].set_index(key)
     common = left.index.intersection(right.index)
     left, right = left.loc[common].reset_index(), right.loc[common].reset_index()
-    out = []
+    out: list[Comparison] = []
     if left.empty:
         return out
     for peers, group_a in left.groupby(list(PEERS), sort=True):
@@ -110,7 +111,8 @@ def compare_frame(frame: pd.DataFrame, a: str, b: str) -> list[Comparison]:
             res_b[both])) if both.any() else float("nan")
         success_winner = a if rate_a > rate_b else b if rate_b > rate_a else "tie"
         decisive = time_ratio_solved if solved.any() else time_ratio
-        out.append(Comparison(*[str(p) for p in peers], len(group_a), rate_a, rate_b,
+        family, settings, precision, start = (str(p) for p in peers)
+        out.append(Comparison(family, settings, precision, start, len(group_a), rate_a, rate_b,
                               time_ratio, time_ratio_solved, accuracy_ratio, success_winner,
                               _winner(decisive, a, b), _winner(accuracy_ratio, a, b)))
     return out

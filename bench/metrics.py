@@ -43,14 +43,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, QP_FAMILIES, Family
+
 TIME_SHIFT = 1e-4
-DUAL_FAMILIES: tuple[str, ...] = ("c3plus_qp", "c3_qp", "lcp")
-NO_DUAL_FAMILIES: tuple[str, ...] = ("projection", "mpcc")
+DUAL_FAMILIES: tuple[Family, ...] = QP_FAMILIES
+"""Families whose solutions carry meaningful duals (convex QPs and the LCP)."""
+NO_DUAL_FAMILIES: tuple[Family, ...] = COMPLEMENTARITY_FAMILIES
+"""Mixed-integer families: no dual certificate, duals neither required nor checked."""
 GROUP_COLUMNS: tuple[str, ...] = ("family", "settings", "precision", "start", "solver")
 PEER_COLUMNS: tuple[str, ...] = ("family", "settings", "precision", "start")
-RESIDUAL_COLUMNS: tuple[str, ...] = ("primal_residual_relative", "dual_residual_relative",
-                                     "duality_gap_relative", "complementarity_violation",
-                                     "cost_error")
 
 
 def required_residuals(family: str) -> tuple[str, ...]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import matplotlib
 
@@ -21,10 +22,15 @@ import pandas as pd
 
 from c3bench.bench import store
 from c3bench.bench.metrics import performance_profile, performance_ratios
+from c3bench.bench.perf import SEED_STEP_MS, TARGET_STEP_MS, summarize
+from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, Precision, Profile, Start
 
 DPI = 110
-SETTINGS_ORDER: tuple[str, ...] = ("default", "low_accuracy", "mid_accuracy", "high_accuracy")
-MIQP_FAMILIES: tuple[str, ...] = ("projection", "mpcc")
+SETTINGS_ORDER: tuple[str, ...] = tuple(Profile)
+"""Order of the settings profiles in figures and tables."""
+MIQP_FAMILIES: tuple[str, ...] = tuple(COMPLEMENTARITY_FAMILIES)
+"""Families whose reference is a mixed-integer optimum."""
+PRECISION_ORDER: tuple[str, ...] = (Precision.FLOAT64, Precision.FLOAT32)
 
 
 @dataclass
@@ -62,12 +68,14 @@ def preferred_settings(frame: pd.DataFrame) -> str | None:
 
 
 def ordered_settings(frame: pd.DataFrame) -> list[str]:
+    """The settings profiles present, in :data:`SETTINGS_ORDER` (unknown ones last)."""
     present = set(frame["settings"])
     return [s for s in SETTINGS_ORDER if s in present] + sorted(present - set(SETTINGS_ORDER))
 
 
 def _baseline(frame: pd.DataFrame) -> pd.DataFrame:
-    return frame[(frame["precision"] == "float64") & (frame["start"] == "cold")]
+    """The cold-start float64 rows."""
+    return frame[(frame["precision"] == Precision.FLOAT64) & (frame["start"] == Start.COLD)]
 
 
 def _save(fig: plt.Figure, paths: store.SuitePaths, key: str) -> str:
@@ -224,7 +232,7 @@ def conditioning(frame: pd.DataFrame, paths: store.SuitePaths) -> list[Figure]:
                     "and after (solid) equilibration vs the ADMM iteration the QP was "
                     "captured at (x: ADMM iteration, -; y: cond(S), -, log scale; median "
                     "over states and settings), per backend that reports it; float64.")
-    rows = frame[(frame["precision"] == "float64") & frame["admm_iteration"].notna()]
+    rows = frame[(frame["precision"] == Precision.FLOAT64) & frame["admm_iteration"].notna()]
     rows = rows[np.isfinite(rows["cond_schur_raw"].to_numpy(float))
                 | np.isfinite(rows["cond_schur_equilibrated"].to_numpy(float))]
     if rows.empty:
@@ -265,9 +273,9 @@ def precision_accuracy(frame: pd.DataFrame, paths: store.SuitePaths) -> list[Fig
                     "right: constraint violation before and after the final projection step "
                     "(y: ||Ax - b||_inf, log scale), float32 and float64; cold start, all "
                     "settings.")
-    cold = frame[frame["start"] == "cold"]
+    cold = frame[frame["start"] == Start.COLD]
     both = [s for s in sorted(set(cold["solver"]))
-            if {"float32", "float64"} <= set(cold.loc[cold["solver"] == s, "precision"])]
+            if set(PRECISION_ORDER) <= set(cold.loc[cold["solver"] == s, "precision"])]
     if not both:
         figure.note = "no backend ran in both float32 and float64"
         return [figure]
@@ -279,7 +287,7 @@ def precision_accuracy(frame: pd.DataFrame, paths: store.SuitePaths) -> list[Fig
     ax = axes[0][0]
     positions, data, labels = [], [], []
     for i, solver in enumerate(both):
-        for j, precision in enumerate(("float64", "float32")):
+        for j, precision in enumerate(PRECISION_ORDER):
             values = rows.loc[(rows["solver"] == solver) & (rows["precision"] == precision),
                               "primal_residual_relative"].to_numpy(float)
             values = values[np.isfinite(values)]
@@ -297,7 +305,7 @@ def precision_accuracy(frame: pd.DataFrame, paths: store.SuitePaths) -> list[Fig
         positions, data, labels = [], [], []
         index = 0
         for solver in both:
-            for precision in ("float64", "float32"):
+            for precision in PRECISION_ORDER:
                 mine = rows[(rows["solver"] == solver) & (rows["precision"] == precision)]
                 for column, tag in (("violation_before_projection", "before"),
                                     ("violation_after_projection", "after")):
@@ -375,3 +383,46 @@ def all_figures(frame: pd.DataFrame, paths: store.SuitePaths) -> list[Figure]:
                  precision_accuracy, miqp_gap):
         figures += make(frame, paths)
     return figures
+
+
+# --- perf: control-step time ------------------------------------------------------------------
+def plot_perf(frame: pd.DataFrame, path: Path) -> Path | None:
+    """Log-log median control-step time vs samples (p95 as error bars); ``None`` when empty.
+
+    ``frame`` holds the rows of ``c3bench perf`` (:data:`bench.store.PERF_SCHEMA`); the
+    seed's step time and the target are drawn as horizontal lines.
+    """
+    summary = summarize(frame)
+    summary = summary[summary["repeats"] > 0]
+    if summary.empty:
+        return None
+    figure, axes = plt.subplots(figsize=(7.0, 4.6))
+    for (backend, precision, device), group in summary.groupby(
+            ["backend", "precision", "device"], sort=False):
+        group = group.sort_values("samples")
+        medians = group["median_ms"].to_numpy(dtype=float)
+        upper = group["p95_ms"].to_numpy(dtype=float) - medians
+        axes.errorbar(group["samples"], medians, yerr=[np.zeros_like(upper), upper],
+                      marker="o", capsize=3, label=f"{backend} ({precision}, {device})")
+    axes.axhline(SEED_STEP_MS, color="grey", linestyle="--", linewidth=1,
+                 label=f"seed: {SEED_STEP_MS:g} ms (16 samples)")
+    axes.axhline(TARGET_STEP_MS, color="grey", linestyle=":", linewidth=1,
+                 label=f"target: {TARGET_STEP_MS:g} ms (16 samples)")
+    axes.set_xscale("log", base=2)
+    axes.set_yscale("log")
+    ticks = sorted(int(n) for n in summary["samples"].unique())
+    axes.set_xticks(ticks, [str(n) for n in ticks])
+    axes.minorticks_off()
+    axes.set_xlabel("model samples n (cube sides l ~ U[0.27, 0.33])")
+    axes.set_ylabel("control-step time [ms] (median; bar to p95)")
+    horizon = int(frame["horizon"].iloc[0]) if len(frame) else 0
+    iterations = int(frame["iterations"].iloc[0]) if len(frame) else 0
+    axes.set_title(f"C3+ control step: LCS build + {iterations} ADMM iterations, T = {horizon},"
+                   " one core", fontsize=10)
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=7, loc="upper left")
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return path

@@ -29,15 +29,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-import pyarrow.parquet as pq
 
-from c3bench.bench.store import (
-    SCHEMA_VERSION,
-    SchemaVersionError,
-    _check_version,
-    atomic_write_bytes,
-)
+from c3bench.bench.store import atomic_write_bytes, parquet_bytes, read_parquet
 from c3bench.problems.instance import Problem
+from c3bench.problems.names import Failure, Family, Profile
 from c3bench.solvers import registry
 from c3bench.solvers.base import WarmStart, settings_for
 from c3bench.solvers.residuals import cost_error, residuals
@@ -49,16 +44,16 @@ class ReferencePlan:
 
     solver: str
     check: str | None
-    settings: str = "high_accuracy"
+    settings: str = Profile.HIGH_ACCURACY
 
 
 # The only solver names in bench/: the reference of each family and its cross-check.
 REFERENCE_PLANS: dict[str, ReferencePlan] = {
-    "c3plus_qp": ReferencePlan("clarabel", "proxqp_dense"),
-    "c3_qp": ReferencePlan("clarabel", "proxqp_dense"),
-    "lcp": ReferencePlan("lemke", "clarabel"),
-    "projection": ReferencePlan("scip", None),
-    "mpcc": ReferencePlan("scip", None),
+    Family.C3PLUS_QP: ReferencePlan("clarabel", "proxqp_dense"),
+    Family.C3_QP: ReferencePlan("clarabel", "proxqp_dense"),
+    Family.LCP: ReferencePlan("lemke", "clarabel"),
+    Family.PROJECTION: ReferencePlan("scip", None),
+    Family.MPCC: ReferencePlan("scip", None),
 }
 
 ACCEPT_RESIDUAL = 1e-6
@@ -139,13 +134,6 @@ def plan_for(family: str) -> ReferencePlan | None:
     return REFERENCE_PLANS.get(family)
 
 
-def reference_solvers() -> tuple[str, ...]:
-    """Every backend named in :data:`REFERENCE_PLANS`."""
-    names = {p.solver for p in REFERENCE_PLANS.values()}
-    names |= {p.check for p in REFERENCE_PLANS.values() if p.check}
-    return tuple(sorted(names))
-
-
 def instance_hash(json_path: str | Path) -> str:
     """SHA-256 of an instance's ``.json`` and ``.npz`` files (first 16 hex digits)."""
     json_path = Path(json_path)
@@ -179,7 +167,7 @@ def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
     from c3bench.solvers.registry import import_plugins
 
     import_plugins(preload)
-    ref = Reference(problem.name, problem.family, digest, plan.solver if plan else "",
+    ref = Reference(problem.name, str(problem.family), digest, plan.solver if plan else "",
                     (plan.check or "") if plan else "", plan.settings if plan else "")
     if plan is None:
         ref.reason = f"no reference plan for family {problem.family!r}"
@@ -194,7 +182,7 @@ def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
         ref.check_solver = plan.check or ""
         ref.check_status = check.status if check_ok else check_reason
         if check_ok:
-            ref.check_objective = float(problem.objective(check.x))
+            ref.check_objective = float(problem.objective(np.asarray(check.x, dtype=float)))
     chosen = main
     if ok:
         ref.reason = ""
@@ -204,22 +192,22 @@ def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
         ok, _, primal, compl = _accept(problem, check)
     else:
         ref.reason = reason
-        ref.failure = main.failure or "inaccurate"
+        ref.failure = str(main.failure) or "inaccurate"
         ref.status = main.status
         ref.solve_time = float(main.solve_time)
         return ref
     ref.available = True
     ref.solver = chosen.solver
     ref.status = chosen.status
-    ref.failure = ""
+    ref.failure = str(Failure.NONE)
     ref.solve_time = float(chosen.solve_time)
-    ref.objective = float(problem.objective(chosen.x))
+    ref.x = np.asarray(chosen.x, dtype=float)
+    ref.objective = float(problem.objective(ref.x))
     ref.primal_residual, ref.complementarity_violation = primal, compl
     if chosen is main and check_ok:
         ref.spread = cost_error(ref.check_objective, ref.objective)
     elif chosen is not main:
         ref.spread = float("nan")
-    ref.x = np.asarray(chosen.x, dtype=float)
     for name in ("y", "z", "z_box"):
         value = getattr(chosen, name)
         setattr(ref, name, None if value is None else np.asarray(value, dtype=float))
@@ -252,12 +240,9 @@ def save_references(path: Path, references: dict[str, Reference]) -> None:
             fields.append(pa.field(column, pa.float64()))
         else:
             fields.append(pa.field(column, pa.string()))
-    schema = pa.schema(fields, metadata={b"c3bench_schema": str(SCHEMA_VERSION).encode()})
     table = pa.Table.from_pydict({c: frame[c].tolist() for c in REFERENCE_COLUMNS},
-                                 schema=schema)
-    sink = pa.BufferOutputStream()
-    pq.write_table(table, sink)
-    atomic_write_bytes(path, sink.getvalue().to_pybytes())
+                                 schema=pa.schema(fields))
+    atomic_write_bytes(path, parquet_bytes(table))
 
 
 def load_references(path: str | Path) -> dict[str, Reference]:
@@ -265,12 +250,7 @@ def load_references(path: str | Path) -> dict[str, Reference]:
     path = Path(path)
     if not path.exists():
         return {}
-    try:
-        table = pq.read_table(path)
-    except (pa.ArrowInvalid, OSError) as error:
-        raise SchemaVersionError(f"{path}: not a readable Parquet file ({error})") from error
-    raw = (table.schema.metadata or {}).get(b"c3bench_schema")
-    _check_version(int(raw) if raw is not None and raw.decode().isdigit() else raw, path)
+    table = read_parquet(path)
     out: dict[str, Reference] = {}
     for record in table.to_pylist():
         values = {key: record.get(key) for key in REFERENCE_COLUMNS}
@@ -293,14 +273,7 @@ def reusable(ref: Reference | None, digest: str, plan: ReferencePlan | None) -> 
         return False
     return (ref.instance_hash == digest and ref.planned_solver == plan.solver
             and ref.planned_check == (plan.check or "") and ref.settings == plan.settings
-            and ref.failure != "unavailable")
-
-
-def reference_frame(references: dict[str, Reference]) -> pd.DataFrame:
-    """The cache without solution vectors, for reports."""
-    columns = [c for c in REFERENCE_COLUMNS if c not in ("x", "y", "z", "z_box")]
-    rows = [{c: getattr(references[name], c) for c in columns} for name in sorted(references)]
-    return pd.DataFrame(rows, columns=columns)
+            and ref.failure != Failure.UNAVAILABLE)
 
 
 @dataclass

@@ -1,6 +1,11 @@
-"""Results store: one row per benchmark cell, its schema, and atomic, resumable storage.
+"""Results store: the schemas of every stored table, their paths, atomic and versioned files.
 
-Layout of ``results/<suite>/``::
+Every command writes under one results root (``--results ROOT``, default ``results``), each in
+its own folder: ``ROOT/<suite>/`` (``run``, ``report``, ``compare``), ``ROOT/perf/``
+(``perf``, :func:`perf_dir`), ``ROOT/closed_loop/<name>/`` (``closed-loop-suite``, ``sweep``
+and ``closed-loop`` runs, :func:`closed_loop_dir`).
+
+Layout of ``ROOT/<suite>/``::
 
     cells/<cell-id>.json      one small file per finished cell (the source of truth; written
                               through a temporary file and a rename as each cell finishes)
@@ -13,8 +18,16 @@ Layout of ``results/<suite>/``::
     instances/                the suite's instances (``problems.suites.generate_suite``)
 
 A cell is one (instance, solver, settings profile, precision, start) combination; its
-identity is :data:`KEY_COLUMNS`. Every file carries :data:`SCHEMA_VERSION`; readers raise
-:class:`SchemaVersionError` for any other version instead of guessing.
+identity is :data:`KEY_COLUMNS`.
+
+``ROOT/perf/perf.parquet`` and ``perf.csv`` hold the control-step times of ``c3bench perf``
+(:data:`PERF_SCHEMA`, one row per timed step) and ``figures/perf_time_vs_samples.png``.
+
+Schema versions: one :data:`SCHEMA_VERSION` for every table this module writes (results,
+traces, references, perf), stored in Parquet metadata (:data:`PARQUET_METADATA_KEY`) and in a
+``schema_version`` column or key; :func:`check_version` is the one check, and readers raise
+:class:`~c3bench.problems.errors.SchemaVersionError` for any other version instead of guessing.
+Changing any stored table's columns bumps :data:`SCHEMA_VERSION`.
 """
 
 from __future__ import annotations
@@ -290,12 +303,51 @@ def write_cell(paths: SuitePaths, row: Mapping[str, Any],
     return path
 
 
-def _check_version(version: Any, source: Path) -> None:
+def check_version(version: Any, source: Path) -> None:
+    """Raise :class:`SchemaVersionError` unless ``version`` is :data:`SCHEMA_VERSION`."""
     if version != SCHEMA_VERSION:
         raise SchemaVersionError(
             f"{source}: written with results schema version {version!r}, this c3bench reads "
-            f"version {SCHEMA_VERSION}; rerun the benchmark with --rerun (or delete "
-            f"{source.parent}) to regenerate it")
+            f"version {SCHEMA_VERSION}; rerun the command that wrote it (`c3bench run "
+            f"--rerun` for a suite) or delete {source.parent} to regenerate it")
+
+
+def check_frame_version(frame: pd.DataFrame, source: Path) -> None:
+    """Check the ``schema_version`` column of a table read from ``source`` (CSV files)."""
+    if "schema_version" not in frame.columns:
+        raise SchemaVersionError(f"{source}: no schema_version column; not a c3bench file")
+    for version in set(frame["schema_version"].tolist()) or {SCHEMA_VERSION}:
+        check_version(version, source)
+
+
+def parquet_bytes(table: pa.Table | pd.DataFrame) -> bytes:
+    """A Parquet file of ``table`` with :data:`SCHEMA_VERSION` in its metadata."""
+    if isinstance(table, pd.DataFrame):
+        table = pa.Table.from_pandas(table, preserve_index=False)
+    metadata = dict(table.schema.metadata or {})
+    metadata[PARQUET_METADATA_KEY] = str(SCHEMA_VERSION).encode()
+    sink = pa.BufferOutputStream()
+    pq.write_table(table.replace_schema_metadata(metadata), sink)
+    return bytes(sink.getvalue().to_pybytes())
+
+
+def read_parquet(path: Path) -> pa.Table:
+    """Read a Parquet file written by :func:`parquet_bytes`, checking its schema version.
+
+    The version comes from the metadata, or, for files written before it was stored there,
+    from a ``schema_version`` column.
+    """
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowInvalid, OSError) as error:
+        raise SchemaVersionError(f"{path}: not a readable Parquet file ({error})") from error
+    raw = (table.schema.metadata or {}).get(PARQUET_METADATA_KEY)
+    if raw is None and "schema_version" in table.column_names:
+        for version in set(table.column("schema_version").to_pylist()) or {SCHEMA_VERSION}:
+            check_version(version, path)
+        return table
+    check_version(int(raw) if raw is not None and raw.decode().isdigit() else raw, path)
+    return table
 
 
 def read_cell(path: Path) -> dict[str, Any]:
@@ -304,7 +356,7 @@ def read_cell(path: Path) -> dict[str, Any]:
         payload = json.loads(path.read_text())
     except json.JSONDecodeError as error:
         raise SchemaVersionError(f"{path}: not a c3bench cell file ({error})") from error
-    _check_version(payload.get("schema_version"), path)
+    check_version(payload.get("schema_version"), path)
     try:
         return normalise_row(payload)
     except (TypeError, ValueError) as error:
@@ -333,8 +385,8 @@ def read_trace(paths: SuitePaths, relative: str) -> dict[str, Any]:
     path = paths.root / relative
     if not path.exists():
         return {}
-    payload = json.loads(path.read_text())
-    _check_version(payload.get("schema_version"), path)
+    payload: dict[str, Any] = json.loads(path.read_text())
+    check_version(payload.get("schema_version"), path)
     return payload
 
 
@@ -361,13 +413,7 @@ def consolidate(paths: SuitePaths) -> pd.DataFrame:
 
 def write_frame(paths: SuitePaths, frame: pd.DataFrame) -> None:
     """Write the results table as Parquet (schema version in its metadata) and CSV."""
-    table = pa.Table.from_pandas(frame, preserve_index=False)
-    metadata = dict(table.schema.metadata or {})
-    metadata[PARQUET_METADATA_KEY] = str(SCHEMA_VERSION).encode()
-    table = table.replace_schema_metadata(metadata)
-    sink = pa.BufferOutputStream()
-    pq.write_table(table, sink)
-    atomic_write_bytes(paths.parquet, sink.getvalue().to_pybytes())
+    atomic_write_bytes(paths.parquet, parquet_bytes(frame))
     atomic_write_bytes(paths.csv, frame.to_csv(index=False).encode())
 
 
@@ -391,23 +437,90 @@ def read_results(source: str | Path) -> pd.DataFrame:
     if source.suffix == ".csv":
         frame = pd.read_csv(source, keep_default_na=False, na_values={
             c.name: ["", "nan", "NaN"] for c in SCHEMA if c.dtype != "str"})
-        if "schema_version" not in frame.columns:
-            raise SchemaVersionError(f"{source}: no schema_version column; not a c3bench "
-                                     "results file")
-        versions = set(frame["schema_version"].tolist())
-        for version in versions or {SCHEMA_VERSION}:
-            _check_version(version, source)
+        check_frame_version(frame, source)
     else:
-        try:
-            table = pq.read_table(source)
-        except (pa.ArrowInvalid, OSError) as error:
-            raise SchemaVersionError(f"{source}: not a readable Parquet file ({error})") from error
-        raw = (table.schema.metadata or {}).get(PARQUET_METADATA_KEY)
-        version = int(raw) if raw is not None and raw.decode().isdigit() else raw
-        _check_version(version, source)
-        frame = table.to_pandas()
+        frame = read_parquet(source).to_pandas()
     missing = [name for name in COLUMNS if name not in frame.columns]
     if missing:
         raise SchemaVersionError(f"{source}: columns {missing} missing for schema version "
                                  f"{SCHEMA_VERSION}")
     return rows_to_frame(frame[list(COLUMNS)].to_dict("records"))
+
+
+# --- other folders of the results root ----------------------------------------------------------
+PERF_DIR = "perf"
+"""Folder of ``c3bench perf`` under the results root."""
+CLOSED_LOOP_DIR = "closed_loop"
+"""Folder of the closed-loop commands under the results root."""
+
+
+def perf_dir(results_dir: str | Path) -> Path:
+    """``<results_dir>/perf``: the files of ``c3bench perf``."""
+    return Path(results_dir) / PERF_DIR
+
+
+def closed_loop_dir(results_dir: str | Path, name: str) -> Path:
+    """``<results_dir>/closed_loop/<name>``: a closed-loop suite, the sweep, or ``runs``."""
+    return Path(results_dir) / CLOSED_LOOP_DIR / name
+
+
+# --- perf: control-step times -----------------------------------------------------------------
+PERF_SCHEMA: tuple[Column, ...] = (
+    Column("schema_version", "int64", ":data:`SCHEMA_VERSION`."),
+    Column("run_id", "str", "UTC time stamp of the run."),
+    Column("backend", "str", "c3plus-riccati, c3plus-jax, c3-osqp or c3-clarabel."),
+    Column("precision", "str", "float64 or float32 (the reference controller runs float64)."),
+    Column("device", "str", "cpu or gpu."),
+    Column("samples", "int64", "Number of model samples n."),
+    Column("repeat", "int64", "Index of the timed step (-1 on a skipped row)."),
+    Column("state_index", "int64", "Step index of the state along the scripted push."),
+    Column("total_ms", "float64", "Control-step time (wall)."),
+    Column("lcs_ms", "float64", "LCS build."),
+    Column("qp_ms", "float64", "QP steps (factorisations, gradients, linear passes)."),
+    Column("proj_ms", "float64", "Projections (NaN for c3plus-jax)."),
+    Column("overhead_ms", "float64", "total - lcs - qp - proj (total - lcs - qp for JAX)."),
+    Column("cpu_ms", "float64", "Process CPU time of the step."),
+    Column("iterations", "int64", "ADMM iterations."),
+    Column("horizon", "int64", "Horizon T."),
+    Column("ok", "bool", "The controller returned a finite input without falling back."),
+    Column("cache_hits", "int64", "Factorisation cache hits in the step (-1: not applicable)."),
+    Column("cache_misses", "int64", "Factorisation cache misses in the step (-1: not "
+           "applicable)."),
+    Column("skipped", "bool", "Configuration not measured (see note)."),
+    Column("note", "str", "Why skipped, or what was cut."),
+    Column("blas_threads", "int64", "BLAS threads during the measurement."),
+    Column("affinity", "str", "CPU cores the process may run on (--cpu pins it to one)."),
+    Column("load_avg", "float64", "1-minute load average when the configuration started."),
+    Column("host", "str", "Machine name, processor and cores."),
+)
+PERF_COLUMNS: tuple[str, ...] = tuple(column.name for column in PERF_SCHEMA)
+
+
+def perf_files(results_dir: str | Path) -> tuple[Path, Path]:
+    """``perf.parquet`` and ``perf.csv`` under :func:`perf_dir`."""
+    directory = perf_dir(results_dir)
+    return directory / "perf.parquet", directory / "perf.csv"
+
+
+def write_perf(frame: pd.DataFrame, results_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``<results_dir>/perf/perf.parquet`` and ``perf.csv`` atomically."""
+    parquet, csv = perf_files(results_dir)
+    atomic_write_bytes(parquet, parquet_bytes(frame))
+    atomic_write_bytes(csv, frame.to_csv(index=False).encode())
+    return parquet, csv
+
+
+def read_perf(results_dir: str | Path) -> pd.DataFrame:
+    """Read ``<results_dir>/perf/perf.parquet`` (or the CSV); reject another schema version.
+
+    Raises ``FileNotFoundError`` when there is no measurement.
+    """
+    parquet, csv = perf_files(results_dir)
+    if parquet.exists():
+        frame = read_parquet(parquet).to_pandas()
+    elif csv.exists():
+        frame = pd.read_csv(csv, keep_default_na=False, na_values=["nan", "NaN", ""])
+        check_frame_version(frame, csv)
+    else:
+        raise FileNotFoundError(f"no perf results under {parquet.parent}; run `c3bench perf`")
+    return frame

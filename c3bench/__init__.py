@@ -2,8 +2,9 @@
 
 The installed package maps three folders of the repository:
 
-* ``c3bench.problems`` (``problems/``): the plant-free core (``Problem``, ``LCS``, layouts,
-  names, errors) and, beside it, the MuJoCo scene, linearisers, MPC, families and suites;
+* ``c3bench.problems`` (``problems/``): the plant-free core (``Problem``, ``LCS``, MPC cost and
+  horizon layout, family builders, capture types, names, errors; listed in
+  ``c3bench.problems.CORE_MODULES``) and, beside it, the MuJoCo scene, linearisers and suites;
 * ``c3bench.solvers`` (``solvers/``): the solver contract, residuals, registry and backends;
 * ``c3bench.bench`` (``bench/``): runner, metrics, results store, report, plots and the CLI.
 """

@@ -3,6 +3,8 @@
 The TOML file beside this module is the single place where the physical constants (masses,
 friction coefficients, ball radius, force limits) and the MPC defaults (the seed's dt, T and
 weights) are fixed. :func:`load_config` reads it, or a user's copy, into frozen dataclasses.
+
+Part of the plant-free core: standard library only (no MuJoCo, no CasADi).
 """
 
 from __future__ import annotations

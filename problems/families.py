@@ -16,7 +16,10 @@ pairs ``0 <= z_i perp z_j >= 0``.
 * ``lcp``: ``min 1/2 lam^T F lam + q^T lam`` s.t. ``lam >= 0`` with ``q = E x + H u + c``
   (its KKT conditions are the LCP because ``F`` is symmetric PSD for Anitescu).
 
-Weights: ``G_k = diag(rho_x I, rho_lam I, rho_u I, rho_eta I)``.
+Weights: ``G_k = diag(rho_x I, rho_lam I, rho_u I, rho_eta I)``, keyed by
+:class:`c3bench.problems.names.Block` (the blocks of :data:`c3bench.problems.names.BLOCKS`).
+
+Part of the plant-free core: pure numpy, imports neither MuJoCo nor CasADi.
 """
 
 from __future__ import annotations
@@ -30,19 +33,19 @@ import numpy as np
 from c3bench.problems.instance import Problem
 from c3bench.problems.lcs import LCS
 from c3bench.problems.mpc import MPC, HorizonLayout
-
-RHO_KEYS: tuple[str, ...] = ("x", "lam", "u", "eta")
+from c3bench.problems.names import Block, Family, Variant
 
 
 def check_rho(rho: Mapping[str, float], blocks: tuple[str, ...]) -> dict[str, float]:
     """Validate consensus weights: finite and > 0 for every block; ``ValueError`` names it."""
     out: dict[str, float] = {}
     for block in blocks:
+        label = str(block)
         if block not in rho:
-            raise ValueError(f"rho is missing the weight for block {block!r}")
+            raise ValueError(f"rho is missing the weight for block {label!r}")
         value = float(rho[block])
         if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"rho[{block!r}] must be finite and > 0, got {rho[block]!r}")
+            raise ValueError(f"rho[{label!r}] must be finite and > 0, got {rho[block]!r}")
         out[block] = value
     return out
 
@@ -61,12 +64,12 @@ def _cost_terms(layout: HorizonLayout, mpc: MPC) -> tuple[np.ndarray, np.ndarray
     offset = 0.0
     for k in range(layout.horizon + 1):
         weight = mpc.Q if k < layout.horizon else mpc.Q_f
-        sx = layout.index(k, "x")
+        sx = layout.index(k, Block.X)
         P[sx, sx] += 2 * weight
         q[sx] += -2 * weight @ mpc.x_target
         offset += float(mpc.x_target @ weight @ mpc.x_target)
         if k < layout.horizon:
-            su = layout.index(k, "u")
+            su = layout.index(k, Block.U)
             P[su, su] += 2 * mpc.R
     return P, q, offset
 
@@ -79,25 +82,25 @@ def dynamics_rows(layout: HorizonLayout, lcs: LCS, x0: np.ndarray
     rows = nx + T * nx + (T * nlam if layout.n_eta else 0)
     A = np.zeros((rows, layout.size))
     b = np.zeros(rows)
-    sx0 = layout.index(0, "x")
+    sx0 = layout.index(0, Block.X)
     A[:nx, sx0] = np.eye(nx)
     b[:nx] = x0
     row = nx
     for k in range(T):
         block = slice(row, row + nx)
-        A[block, layout.index(k + 1, "x")] = np.eye(nx)
-        A[block, layout.index(k, "x")] = -lcs.A
-        A[block, layout.index(k, "u")] = -lcs.B
-        A[block, layout.index(k, "lam")] = -lcs.D
+        A[block, layout.index(k + 1, Block.X)] = np.eye(nx)
+        A[block, layout.index(k, Block.X)] = -lcs.A
+        A[block, layout.index(k, Block.U)] = -lcs.B
+        A[block, layout.index(k, Block.LAM)] = -lcs.D
         b[block] = lcs.d
         row += nx
     if layout.n_eta:
         for k in range(T):
             block = slice(row, row + nlam)
-            A[block, layout.index(k, "eta")] = np.eye(nlam)
-            A[block, layout.index(k, "x")] = -lcs.E
-            A[block, layout.index(k, "lam")] = -lcs.F
-            A[block, layout.index(k, "u")] = -lcs.H
+            A[block, layout.index(k, Block.ETA)] = np.eye(nlam)
+            A[block, layout.index(k, Block.X)] = -lcs.E
+            A[block, layout.index(k, Block.LAM)] = -lcs.F
+            A[block, layout.index(k, Block.U)] = -lcs.H
             b[block] = lcs.c
             row += nlam
     return A, b
@@ -107,7 +110,7 @@ def _input_bounds(layout: HorizonLayout, limit: float) -> tuple[np.ndarray, np.n
     lb = np.full(layout.size, -np.inf)
     ub = np.full(layout.size, np.inf)
     for k in range(layout.horizon):
-        su = layout.index(k, "u")
+        su = layout.index(k, Block.U)
         lb[su] = -limit
         ub[su] = limit
     return lb, ub
@@ -172,11 +175,11 @@ def consensus_qp(
     input_bounds
         Add ``|u_k| <= force_limit``.
     """
-    if family not in ("c3plus_qp", "c3_qp"):
+    if family not in (Family.C3PLUS_QP, Family.C3_QP):
         raise ValueError(f"family must be 'c3plus_qp' or 'c3_qp', got {family!r}")
     _check_models(lcs, mpc)
     x0 = _check_x0(x0, lcs)
-    n_eta = lcs.nlam if family == "c3plus_qp" else 0
+    n_eta = lcs.nlam if family == Family.C3PLUS_QP else 0
     layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, n_eta, mpc.horizon)
     weights = check_rho(rho, tuple(layout.block_sizes()))
     delta = _check_horizon_arrays("delta", delta, layout)
@@ -211,30 +214,30 @@ def mpcc(name: str, lcs: LCS, mpc: MPC, x0: np.ndarray,
     P, q, offset = _cost_terms(layout, mpc)
     A, b = dynamics_rows(layout, lcs, x0)
     lb, ub = _input_bounds(layout, mpc.force_limit)
-    pairs = []
+    pairs: list[tuple[int, int]] = []
     for k in range(layout.horizon):
-        lam, eta = layout.index(k, "lam"), layout.index(k, "eta")
+        lam, eta = layout.index(k, Block.LAM), layout.index(k, Block.ETA)
         lb[lam] = 0.0
         lb[eta] = 0.0
         pairs.extend(zip(range(lam.start, lam.stop), range(eta.start, eta.stop), strict=True))
     info = dict(meta or {})
     info["layout"] = layout.to_json()
     return Problem(
-        name=name, family="mpcc", P=P, q=q, A=A, b=b, lb=lb, ub=ub,
+        name=name, family=Family.MPCC, P=P, q=q, A=A, b=b, lb=lb, ub=ub,
         complementarity=np.array(pairs, dtype=np.int64), objective_offset=offset, lcs=lcs,
         data={"x0": x0}, meta=info,
     )
 
 
 def projection(name: str, lcs: LCS, v: np.ndarray, U_diag: np.ndarray,
-               variant: str = "c3", meta: dict[str, Any] | None = None) -> Problem:
+               variant: str = Variant.C3, meta: dict[str, Any] | None = None) -> Problem:
     """One step's projection ``min (delta - v)^T U (delta - v)`` onto complementarity.
 
     ``delta = (x, lam, u, eta)``. Variant ``c3``: ``eta = E x + F lam + H u + c`` is an
     equality and ``U`` must be zero on ``eta`` (C3's projection on ``(x, lam, u)``); variant
     ``c3plus``: no equality, so each pair ``(lam_i, eta_i)`` is projected on its own.
     """
-    if variant not in ("c3", "c3plus"):
+    if variant not in (Variant.C3, Variant.C3PLUS):
         raise ValueError(f"variant must be 'c3' or 'c3plus', got {variant!r}")
     nx, nlam, nu = lcs.nx, lcs.nlam, lcs.nu
     size = nx + 2 * nlam + nu
@@ -250,7 +253,7 @@ def projection(name: str, lcs: LCS, v: np.ndarray, U_diag: np.ndarray,
     x_s, lam_s = slice(0, nx), slice(nx, nx + nlam)
     u_s, eta_s = slice(nx + nlam, nx + nlam + nu), slice(nx + nlam + nu, size)
     A = b = None
-    if variant == "c3":
+    if variant == Variant.C3:
         if np.any(U[eta_s] != 0):
             raise ValueError("U_diag must be zero on eta for the c3 variant")
         A = np.zeros((nlam, size))
@@ -270,7 +273,7 @@ def projection(name: str, lcs: LCS, v: np.ndarray, U_diag: np.ndarray,
     info = dict(meta or {})
     info.update({"variant": variant,
                  "layout": HorizonLayout(nx, nlam, nu, nlam, 1).to_json()})
-    return Problem(name=name, family="projection", P=P, q=q, A=A, b=b, lb=lb,
+    return Problem(name=name, family=Family.PROJECTION, P=P, q=q, A=A, b=b, lb=lb,
                    complementarity=pairs, objective_offset=offset, lcs=lcs,
                    data={"v": v, "U_diag": U}, meta=info)
 
@@ -285,6 +288,6 @@ def lcp(name: str, lcs: LCS, x: np.ndarray, u: np.ndarray,
     if u.shape != (lcs.nu,) or not np.all(np.isfinite(u)):
         raise ValueError(f"u must be a finite vector of shape ({lcs.nu},)")
     offset_q = lcs.lcp_offset(x, u)
-    return Problem(name=name, family="lcp", P=lcs.F.copy(), q=offset_q,
+    return Problem(name=name, family=Family.LCP, P=lcs.F.copy(), q=offset_q,
                    lb=np.zeros(lcs.nlam), lcs=lcs, data={"x": x, "u": u},
                    meta=dict(meta or {}))

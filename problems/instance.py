@@ -6,13 +6,17 @@ Every family is stored in one QP-with-complementarity form, following qpsolvers'
     subject to  A z = b,   G z <= h,   lb <= z <= ub,
                 0 <= z_i  perp  z_j >= 0   for every row (i, j) of ``complementarity``.
 
-``lcs`` holds the LCS the instance came from, ``data`` the family's own arrays (``x0``,
-``delta``, ``w``, ``G_diag``, ``v``, ``U_diag``, ...), ``meta`` its JSON metadata.
+``lcs`` holds the LCS the instance came from (optional: ``None`` for an instance without one),
+``data`` the family's own arrays (``x0``, ``delta``, ``w``, ``G_diag``, ``v``, ``U_diag``, ...),
+``meta`` its JSON metadata.
 
 Storage: ``<name>.npz`` (the arrays, written with fixed zip timestamps so that regenerating
 gives byte-identical files) and ``<name>.json`` (schema version, family, name, metadata and the
-list of array keys). Loading a file of another schema version, or one missing a key, raises
-:class:`InstanceFormatError` naming the file and the key.
+list of array keys, plus an ``lcs`` table when the instance has an LCS; its arrays are then
+stored as ``lcs.A`` ... ``lcs.phi``). Loading a file of another schema version, or one missing a
+key, raises :class:`InstanceFormatError` naming the file and the key.
+
+Part of the plant-free core: imports neither MuJoCo nor CasADi.
 """
 
 from __future__ import annotations
@@ -31,9 +35,11 @@ import numpy as np
 
 from c3bench.problems.errors import InstanceFormatError
 from c3bench.problems.lcs import LCS, LCS_MATRICES
+from c3bench.problems.names import Family
 
 SCHEMA_VERSION = 1
-FAMILIES: tuple[str, ...] = ("c3plus_qp", "c3_qp", "projection", "mpcc", "lcp")
+FAMILIES: tuple[str, ...] = tuple(Family)
+"""Family names in their canonical order (:class:`c3bench.problems.names.Family`)."""
 QP_FIELDS: tuple[str, ...] = ("P", "q", "A", "b", "G", "h", "lb", "ub")
 REQUIRED_META: tuple[str, ...] = ("scene", "l", "dt", "T", "seed", "precision")
 
@@ -61,7 +67,7 @@ class Problem:
     objective_offset
         Constant added to the objective, so that it equals the family's true cost.
     lcs
-        The LCS the instance came from.
+        The LCS the instance came from, or ``None`` (then no ``lcs.*`` arrays are stored).
     data
         Family-specific arrays.
     meta
@@ -96,14 +102,17 @@ class Problem:
 
     @property
     def n_eq(self) -> int:
+        """Equality rows."""
         return 0 if self.A is None else int(self.A.shape[0])
 
     @property
     def n_ineq(self) -> int:
+        """Inequality rows."""
         return 0 if self.G is None else int(self.G.shape[0])
 
     @property
     def n_pairs(self) -> int:
+        """Complementarity pairs."""
         return 0 if self.complementarity is None else int(self.complementarity.shape[0])
 
     @property
@@ -176,10 +185,6 @@ class Problem:
         """``1/2 z^T P z + q^T z + objective_offset``."""
         z = np.asarray(z, dtype=float)
         return float(0.5 * z @ self.P @ z + self.q @ z + self.objective_offset)
-
-    def qp_arrays(self) -> dict[str, np.ndarray | None]:
-        """The QP matrices by qpsolvers' names."""
-        return {name: getattr(self, name) for name in QP_FIELDS}
 
     def summary(self) -> dict[str, Any]:
         """Sizes for listings: variables, equality and inequality rows, pairs, bounds."""
@@ -337,8 +342,9 @@ def load_problem(path: str | Path) -> Problem:
         )
     data = {key[5:]: value for key, value in arrays.items() if key.startswith("data.")}
     return Problem(
-        name=name, family=family,
-        **{key: arrays.get(key) for key in QP_FIELDS},
+        name=name, family=family, P=arrays["P"], q=arrays["q"],
+        A=arrays.get("A"), b=arrays.get("b"), G=arrays.get("G"), h=arrays.get("h"),
+        lb=arrays.get("lb"), ub=arrays.get("ub"),
         complementarity=arrays.get("complementarity"),
         objective_offset=float(header.get("objective_offset", 0.0)),
         lcs=lcs, data=data, meta=meta,

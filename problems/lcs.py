@@ -1,17 +1,17 @@
-"""Linear complementarity system (LCS) linearisation of the cube-tipping scene.
+"""Linear complementarity systems (LCS): the types, their one validator and the assembly formulas.
 
 The LCS (docs/lcs.md) is
 
     x_{k+1} = A x_k + B u_k + D lam_k + d,
-    0 <= lam_k  perp  E x_k + F lam_k + H u_k + c >= 0,
+    0 <= lam_k  perp  E x_k + F lam_k + H u_k + c >= 0.
 
-derived from MuJoCo's mass matrix ``M``, smooth acceleration (bias, gravity compensation and
-actuator forces), contact frames, signed distances ``phi`` (``mj_geomDistance`` for the
-ball-cube pair, touching or not) and point Jacobians, never from MuJoCo's soft contact.
+:class:`LCS` holds one system, :class:`LCSBatch` ``n`` systems of the same dimensions stacked
+along a leading sample axis (the robust controller's model samples). Both check their arrays
+with :func:`check_lcs_arrays`.
 
-With the smooth dynamics ``v' = M^-1 (tau - C v + B_u u)`` linearised as
-``J_q q + J_v v + J_u u + d_v``, ``q' = N v`` (``N^+`` its pseudo-inverse) and semi-implicit
-Euler of step ``dt``:
+:func:`assemble_lcs` turns a linearised plant into the LCS matrices. With the smooth dynamics
+``v' = M^-1 (tau - C v + B_u u)`` linearised as ``J_q q + J_v v + J_u u + d_v``, ``q' = N v``
+(``N^+`` its pseudo-inverse) and semi-implicit Euler of step ``dt``:
 
 * Anitescu (default): one force per contact ``i`` and friction direction ``j`` along
   ``n_i + mu_i t_ij``; ``J_c = E_t^T J_n + mu J_t``;
@@ -24,23 +24,99 @@ Euler of step ``dt``:
   rows: friction cone ``mu lam_n - E_t lam_t``, position-level gap
   ``phi + dt J_n v_{k+1}``, and maximum dissipation ``E_t^T gamma + J_t v_{k+1}``.
 
-``E_t`` (contacts x directions) sums a contact's friction directions.
+``E_t`` (contacts x directions) sums a contact's friction directions. The MuJoCo side (mass
+matrix, smooth acceleration, contact frames) is in :mod:`c3bench.problems.linearize` and
+:mod:`c3bench.problems.linearize_batch`.
+
+Part of the plant-free core: pure numpy, imports neither MuJoCo nor CasADi.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
-import mujoco
 import numpy as np
-
-from c3bench.problems.scene import Scene
 
 ContactModel = Literal["anitescu", "stewart_trinkle"]
 CONTACT_MODELS: tuple[str, ...] = ("anitescu", "stewart_trinkle")
 LCS_MATRICES: tuple[str, ...] = ("A", "B", "D", "d", "E", "F", "H", "c")
+
+_UIDS = itertools.count(1)
+
+
+def next_uid() -> int:
+    """A process-wide unique integer: the identity of an LCS batch (factorisation caches)."""
+    return next(_UIDS)
+
+
+def check_dt(dt: float, name: str = "dt") -> float:
+    """``dt`` as a float; ``ValueError`` naming ``name`` unless it is a finite number > 0."""
+    if not (isinstance(dt, int | float | np.integer | np.floating) and math.isfinite(dt)
+            and dt > 0):
+        raise ValueError(f"{name} must be a finite number > 0, got {dt!r}")
+    return float(dt)
+
+
+def check_lcs_arrays(owner: str, arrays: Mapping[str, Any], dt: float,
+                     batched: bool = False) -> dict[str, np.ndarray]:
+    """The one LCS validator: shapes, finiteness and ``dt`` of :class:`LCS` and :class:`LCSBatch`.
+
+    Parameters
+    ----------
+    owner
+        Name used in error messages (``"LCS"`` or ``"LCSBatch"``).
+    arrays
+        ``A, B, D, d, E, F, H, c`` (at least; other keys are ignored).
+    dt
+        Time step (s).
+    batched
+        ``True`` when every array carries a leading sample axis ``n >= 1``.
+
+    Returns
+    -------
+    dict
+        The matrices as arrays (non-floating ones converted to float64, floating ones kept in
+        their precision).
+
+    Raises
+    ------
+    ValueError
+        Naming the offending matrix (``"LCS.F must have shape ..."``) or ``dt``.
+    """
+    checked: dict[str, np.ndarray] = {}
+    for name in LCS_MATRICES:
+        value = np.asarray(arrays[name])
+        if not np.issubdtype(value.dtype, np.floating):
+            value = value.astype(np.float64)
+        checked[name] = value
+    lead: tuple[int, ...] = ()
+    A = checked["A"]
+    if batched:
+        if A.ndim != 3 or A.shape[0] < 1:
+            raise ValueError(f"{owner}.A must have shape (n, nx, nx) with n >= 1, got "
+                             f"{A.shape}")
+        lead = (int(A.shape[0]),)
+    axis = len(lead)
+    nx = int(A.shape[axis]) if A.ndim > axis else 0
+    nu = int(checked["B"].shape[-1]) if checked["B"].ndim == axis + 2 else 0
+    nlam = int(checked["D"].shape[-1]) if checked["D"].ndim == axis + 2 else 0
+    expected = {
+        "A": (nx, nx), "B": (nx, nu), "D": (nx, nlam), "d": (nx,),
+        "E": (nlam, nx), "F": (nlam, nlam), "H": (nlam, nu), "c": (nlam,),
+    }
+    for name, shape in expected.items():
+        value = checked[name]
+        if value.shape != lead + shape:
+            raise ValueError(f"{owner}.{name} must have shape {lead + shape}, got "
+                             f"{value.shape}")
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"{owner}.{name} has non-finite entries")
+    check_dt(dt, f"{owner}.dt")
+    return checked
 
 
 @dataclass
@@ -80,46 +156,39 @@ class LCS:
 
     @property
     def nx(self) -> int:
+        """State dimension."""
         return int(self.A.shape[0])
 
     @property
     def nu(self) -> int:
+        """Input dimension."""
         return int(self.B.shape[1])
 
     @property
     def nlam(self) -> int:
+        """Number of contact forces (complementarity pairs per step)."""
         return int(self.D.shape[1])
 
     def validate(self) -> None:
-        """Check shapes and finiteness; raise ``ValueError`` naming the offending matrix."""
-        nx, nu, nlam = self.A.shape[0], self.B.shape[1], self.D.shape[1]
-        expected = {
-            "A": (nx, nx), "B": (nx, nu), "D": (nx, nlam), "d": (nx,),
-            "E": (nlam, nx), "F": (nlam, nlam), "H": (nlam, nu), "c": (nlam,),
-        }
-        for name, shape in expected.items():
-            value = getattr(self, name)
-            if not isinstance(value, np.ndarray):
-                value = np.asarray(value, dtype=float)
-                setattr(self, name, value)
-            if value.shape != shape:
-                raise ValueError(f"LCS.{name} must have shape {shape}, got {value.shape}")
-            if not np.all(np.isfinite(value)):
-                raise ValueError(f"LCS.{name} has non-finite entries")
-        if not (math.isfinite(self.dt) and self.dt > 0):
-            raise ValueError(f"LCS.dt must be a finite number > 0, got {self.dt!r}")
+        """Check shapes and finiteness (:func:`check_lcs_arrays`); ``ValueError`` names the
+        offending matrix."""
+        for name, value in check_lcs_arrays("LCS", self.arrays(), self.dt).items():
+            setattr(self, name, value)
 
     def next_state(self, x: np.ndarray, u: np.ndarray, lam: np.ndarray) -> np.ndarray:
         """``A x + B u + D lam + d``."""
-        return self.A @ x + self.B @ u + self.D @ lam + self.d
+        out: np.ndarray = self.A @ x + self.B @ u + self.D @ lam + self.d
+        return out
 
     def lcp_offset(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """``E x + H u + c``: the ``q`` of the step's LCP ``0 <= lam perp F lam + q >= 0``."""
-        return self.E @ x + self.H @ u + self.c
+        out: np.ndarray = self.E @ x + self.H @ u + self.c
+        return out
 
     def gap(self, x: np.ndarray, u: np.ndarray, lam: np.ndarray) -> np.ndarray:
         """``E x + F lam + H u + c``."""
-        return self.lcp_offset(x, u) + self.F @ lam
+        out: np.ndarray = self.lcp_offset(x, u) + self.F @ lam
+        return out
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The matrices by name, plus ``phi``."""
@@ -129,208 +198,116 @@ class LCS:
 
 
 @dataclass
-class ContactFrames:
-    """Contact geometry at one configuration.
+class LCSBatch:
+    """``n`` LCS with the same dimensions, stacked along a leading sample axis.
+
+    ``x'_j = A_j x + B_j u + D_j lam + d_j``, ``0 <= lam perp E_j x + F_j lam + H_j u + c_j``.
 
     Attributes
     ----------
-    phi
-        Signed distances, one per contact (m).
-    J_n
-        Normal Jacobians (contacts x nv): relative normal velocity ``J_n v``.
-    J_t
-        Tangential Jacobians (directions x nv), one row per friction direction.
-    mu
-        Friction coefficient per contact.
-    E_t
-        Contacts x directions, 1 where a direction belongs to a contact.
-    """
-
-    phi: np.ndarray
-    J_n: np.ndarray
-    J_t: np.ndarray
-    mu: np.ndarray
-    E_t: np.ndarray
-
-
-def _tangent_directions(normal: np.ndarray, planar: bool) -> list[np.ndarray]:
-    if planar:
-        tangent = np.array([normal[2], 0.0, -normal[0]])
-        tangent /= np.linalg.norm(tangent)
-        return [tangent, -tangent]
-    helper = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    t1 = np.cross(helper, normal)
-    t1 /= np.linalg.norm(t1)
-    t2 = np.cross(normal, t1)
-    return [t1, -t1, t2, -t2]
-
-
-def contact_frames(scene: Scene) -> ContactFrames:
-    """Contact geometry of ``scene.data`` (kinematics must be current).
-
-    Contacts: each bottom corner of the cube with the table (normal +z, ``phi`` = corner
-    height above the table), then the ball with the cube (``mj_geomDistance``; normal from
-    the cube to the ball centre; ``phi`` negative when they overlap).
-    """
-    model, data = scene.model, scene.data
-    planar = scene.variant == "planar"
-    cube_body, ball_body = scene.body("cube"), scene.body("ball")
-    table_z = scene.config.scene.table_height
-    normal_rows: list[np.ndarray] = []
-    tangent_rows: list[np.ndarray] = []
-    phi: list[float] = []
-    mu: list[float] = []
-    jac_a = np.zeros((3, scene.nv))
-    jac_b = np.zeros((3, scene.nv))
-    up = np.array([0.0, 0.0, 1.0])
-    for site in scene.corner_sites:
-        point = data.site_xpos[site].copy()
-        mujoco.mj_jac(model, data, jac_a, None, point, cube_body)
-        phi.append(float(point[2] - table_z))
-        normal_rows.append(up @ jac_a)
-        tangent_rows.extend(t @ jac_a for t in _tangent_directions(up, planar))
-        mu.append(scene.config.scene.mu_table)
-    ball_geom, cube_geom = scene.geom("ball"), scene.geom("cube")
-    fromto = np.zeros(6)
-    distance = mujoco.mj_geomDistance(model, data, ball_geom, cube_geom, 10.0, fromto)
-    centre = data.geom_xpos[ball_geom]
-    normal = centre - fromto[:3]
-    normal /= np.linalg.norm(normal)
-    mujoco.mj_jac(model, data, jac_a, None, fromto[:3].copy(), ball_body)
-    mujoco.mj_jac(model, data, jac_b, None, fromto[3:].copy(), cube_body)
-    relative = jac_a - jac_b
-    phi.append(float(distance))
-    normal_rows.append(normal @ relative)
-    tangent_rows.extend(t @ relative for t in _tangent_directions(normal, planar))
-    mu.append(scene.config.scene.mu_ball)
-    n_contacts = len(phi)
-    per = scene.friction_directions
-    E_t = np.kron(np.eye(n_contacts), np.ones((1, per)))
-    return ContactFrames(
-        phi=np.array(phi), J_n=np.array(normal_rows), J_t=np.array(tangent_rows),
-        mu=np.array(mu), E_t=E_t,
-    )
-
-
-@dataclass
-class SmoothDynamics:
-    """Linearised smooth dynamics ``v' = J_q q + J_v v + J_u u + d_v``, kinematics ``q' = N v``."""
-
-    J_q: np.ndarray
-    J_v: np.ndarray
-    J_u: np.ndarray
-    d_v: np.ndarray
-    N: np.ndarray
-    N_pinv: np.ndarray
-    M_inv: np.ndarray
-
-
-def _smooth_acceleration(scene: Scene, q: np.ndarray, v: np.ndarray,
-                         u: np.ndarray) -> np.ndarray:
-    data = scene.data
-    data.qpos[:] = q
-    data.qvel[:] = v
-    data.ctrl[:] = u
-    mujoco.mj_forward(scene.model, data)
-    return data.qacc_smooth.copy()
-
-
-def smooth_dynamics(scene: Scene, x: np.ndarray, u: np.ndarray,
-                    eps: float = 1e-6) -> SmoothDynamics:
-    """Linearise MuJoCo's unconstrained acceleration by central differences.
-
-    ``J_q`` is taken in the tangent space (``mj_integratePos``) and mapped to ``q`` by ``N^+``.
-    Control clamping is disabled while differencing so that ``J_u`` is the actuator map.
-    Leaves ``scene.data`` at ``(x, u)`` with kinematics current.
-    """
-    model = scene.model
-    nq, nv, nu = scene.nq, scene.nv, scene.nu
-    q0, v0 = x[:nq].copy(), x[nq:].copy()
-    flags = model.opt.disableflags
-    model.opt.disableflags = flags | int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL)
-    try:
-        J_tangent = np.zeros((nv, nv))
-        N = np.zeros((nq, nv))
-        for i in range(nv):
-            step = np.zeros(nv)
-            step[i] = eps
-            q_plus, q_minus = q0.copy(), q0.copy()
-            mujoco.mj_integratePos(model, q_plus, step, 1.0)
-            mujoco.mj_integratePos(model, q_minus, step, -1.0)
-            N[:, i] = (q_plus - q_minus) / (2 * eps)
-            J_tangent[:, i] = (
-                _smooth_acceleration(scene, q_plus, v0, u)
-                - _smooth_acceleration(scene, q_minus, v0, u)
-            ) / (2 * eps)
-        J_v = np.zeros((nv, nv))
-        for i in range(nv):
-            dv = np.zeros(nv)
-            dv[i] = eps
-            J_v[:, i] = (
-                _smooth_acceleration(scene, q0, v0 + dv, u)
-                - _smooth_acceleration(scene, q0, v0 - dv, u)
-            ) / (2 * eps)
-        J_u = np.zeros((nv, nu))
-        for i in range(nu):
-            du = np.zeros(nu)
-            du[i] = eps
-            J_u[:, i] = (
-                _smooth_acceleration(scene, q0, v0, u + du)
-                - _smooth_acceleration(scene, q0, v0, u - du)
-            ) / (2 * eps)
-        acceleration = _smooth_acceleration(scene, q0, v0, u)
-    finally:
-        model.opt.disableflags = flags
-    N_pinv = np.linalg.pinv(N)
-    J_q = J_tangent @ N_pinv
-    M = np.zeros((nv, nv))
-    mujoco.mj_fullM(model, scene.data, M)
-    M_inv = np.linalg.inv(M)
-    M_inv = 0.5 * (M_inv + M_inv.T)
-    d_v = acceleration - J_q @ q0 - J_v @ v0 - J_u @ u
-    return SmoothDynamics(J_q=J_q, J_v=J_v, J_u=J_u, d_v=d_v, N=N, N_pinv=N_pinv, M_inv=M_inv)
-
-
-def check_dt(dt: float) -> float:
-    if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
-    return float(dt)
-
-
-def linearize(
-    scene: Scene,
-    x: np.ndarray,
-    u: np.ndarray,
-    dt: float,
-    contact_model: ContactModel = "anitescu",
-) -> LCS:
-    """Linearise the scene into an LCS at state ``x`` and input ``u``.
-
-    Parameters
-    ----------
-    scene
-        The controller's model (its ``l`` may differ from the plant's).
-    x, u
-        Linearisation point: state ``(q, v)`` and ball force.
+    A, B, D, d, E, F, H, c
+        (n, ...) stacks of the LCS matrices of :class:`LCS`.
     dt
-        Time step (s).
-    contact_model
-        ``"anitescu"`` (default) or ``"stewart_trinkle"``.
+        Time step (s), common to all samples.
+    contact_model, n_contacts, friction_directions
+        As in :class:`LCS`.
+    phi
+        (n, contacts) signed distances.
+    sides
+        (n,) cube sides of the samples (``nan`` when unknown).
+    uid
+        Identity of this batch: arrays are made read-only at construction, so the same
+        ``uid`` means the same data (used as the LCS key of factorisation caches).
     """
-    x = scene.check_state(x)
-    u = scene.check_input(u)
-    dt = check_dt(dt)
-    if contact_model not in CONTACT_MODELS:
-        raise ValueError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
-    dyn = smooth_dynamics(scene, x, u)
-    frames = contact_frames(scene)
-    arrays = assemble_lcs(
-        dt, x[: scene.nq], dyn.N, dyn.N_pinv, dyn.J_q[None], dyn.J_v[None], dyn.J_u[None],
-        dyn.d_v[None], dyn.M_inv[None], frames.phi[None], frames.J_n[None], frames.J_t[None],
-        frames.E_t, frames.mu, contact_model)
-    return LCS(**{name: value[0] for name, value in arrays.items()}, dt=dt,
-               contact_model=contact_model, n_contacts=len(frames.phi),
-               friction_directions=scene.friction_directions, phi=frames.phi)
+
+    A: np.ndarray
+    B: np.ndarray
+    D: np.ndarray
+    d: np.ndarray
+    E: np.ndarray
+    F: np.ndarray
+    H: np.ndarray
+    c: np.ndarray
+    dt: float
+    contact_model: str = "anitescu"
+    n_contacts: int = 0
+    friction_directions: int = 0
+    phi: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    sides: np.ndarray | None = None
+    uid: int = field(default=0, init=False)
+
+    def __post_init__(self) -> None:
+        arrays = {name: getattr(self, name) for name in LCS_MATRICES}
+        for name, value in check_lcs_arrays("LCSBatch", arrays, self.dt, batched=True).items():
+            if value.flags.writeable:
+                value.setflags(write=False)
+            setattr(self, name, value)
+        self.phi = np.asarray(self.phi, dtype=float)
+        if self.sides is not None:
+            self.sides = np.asarray(self.sides, dtype=float).reshape(self.n_samples)
+        self.uid = next_uid()
+
+    @property
+    def n_samples(self) -> int:
+        """Number of samples ``n``."""
+        return int(self.A.shape[0])
+
+    @property
+    def nx(self) -> int:
+        """State dimension."""
+        return int(self.A.shape[1])
+
+    @property
+    def nu(self) -> int:
+        """Input dimension."""
+        return int(self.B.shape[2])
+
+    @property
+    def nlam(self) -> int:
+        """Number of contact forces per step."""
+        return int(self.D.shape[2])
+
+    def sample(self, j: int) -> LCS:
+        """Sample ``j`` as an :class:`LCS` (float64 copies)."""
+        arrays = {name: np.array(getattr(self, name)[j], dtype=np.float64)
+                  for name in LCS_MATRICES}
+        phi = self.phi[j].copy() if self.phi.ndim == 2 and self.phi.shape[0] else np.zeros(0)
+        return LCS(**arrays, dt=self.dt, contact_model=self.contact_model,
+                   n_contacts=self.n_contacts, friction_directions=self.friction_directions,
+                   phi=phi)
+
+    def samples(self) -> list[LCS]:
+        """All samples as :class:`LCS` objects."""
+        return [self.sample(j) for j in range(self.n_samples)]
+
+    @classmethod
+    def from_lcs(cls, systems: Sequence[LCS], sides: Sequence[float] | None = None
+                 ) -> LCSBatch:
+        """Stack LCS objects (same dimensions, dt and contact model) into a batch."""
+        if len(systems) < 1:
+            raise ValueError("need at least one LCS")
+        first = systems[0]
+        for lcs in systems[1:]:
+            if (lcs.nx, lcs.nu, lcs.nlam) != (first.nx, first.nu, first.nlam):
+                raise ValueError("all LCS must have the same dimensions")
+            if lcs.dt != first.dt or lcs.contact_model != first.contact_model:
+                raise ValueError("all LCS must have the same dt and contact model")
+        arrays = {name: np.stack([getattr(lcs, name) for lcs in systems])
+                  for name in LCS_MATRICES}
+        phis = [np.asarray(lcs.phi, dtype=float) for lcs in systems]
+        phi = np.stack(phis) if len({p.shape for p in phis}) == 1 else np.zeros((len(phis), 0))
+        return cls(**arrays, dt=first.dt, contact_model=first.contact_model,
+                   n_contacts=first.n_contacts, friction_directions=first.friction_directions,
+                   phi=phi, sides=None if sides is None else np.asarray(sides, dtype=float))
+
+    def repeat(self, n: int) -> LCSBatch:
+        """A batch of ``n`` copies of sample 0 (for tests of identical samples)."""
+        arrays = {name: np.repeat(getattr(self, name)[:1], n, axis=0) for name in LCS_MATRICES}
+        sides = None if self.sides is None else np.repeat(self.sides[:1], n)
+        phi = np.repeat(self.phi[:1], n, axis=0) if self.phi.ndim == 2 else self.phi
+        return LCSBatch(**arrays, dt=self.dt, contact_model=self.contact_model,
+                        n_contacts=self.n_contacts,
+                        friction_directions=self.friction_directions, phi=phi, sides=sides)
 
 
 def assemble_lcs(dt: float, q0: np.ndarray, N: np.ndarray, N_pinv: np.ndarray,
@@ -344,8 +321,8 @@ def assemble_lcs(dt: float, q0: np.ndarray, N: np.ndarray, N_pinv: np.ndarray,
     directions), ``mu`` (contacts). Per model: ``J_q`` (n, nv, nq), ``J_v`` (n, nv, nv),
     ``J_u`` (n, nv, nu), ``d_v`` (n, nv), ``M_inv`` (n, nv, nv), ``phi`` (n, contacts),
     ``J_n`` (n, contacts, nv), ``J_t`` (n, directions, nv). Returns ``A, B, D, d, E, F, H, c``
-    stacked along the leading axis; :func:`linearize` calls it with ``n = 1`` and
-    :mod:`problems.lcs_batch` with one model per sampled cube side.
+    stacked along the leading axis; :func:`c3bench.problems.linearize.linearize` calls it with
+    ``n = 1`` and :mod:`c3bench.problems.linearize_batch` with one model per sampled cube side.
     """
     n, nv, nq = J_q.shape
     nu = J_u.shape[-1]

@@ -1,11 +1,17 @@
-"""The cube-tipping MPC: weights, goal state and the horizon variable layout.
+"""The MPC cost and the horizon variable layout shared by every family and solver.
 
 Cost (docs/mpc.md):
 
     J = sum_{k<T} (x_k - x*)^T Q (x_k - x*) + u_k^T R u_k  +  (x_T - x*)^T Q_f (x_T - x*),
 
 with ``Q`` diagonal (cube pose ``q_cube_pose``, ball position ``q_ball_position``, every velocity
-``q_velocity``), ``R = r_input I`` and ``Q_f = terminal_factor Q``.
+``q_velocity``), ``R = r_input I`` and ``Q_f = terminal_factor Q``; the weights for a scene are
+built by :func:`c3bench.problems.scene.build_mpc`.
+
+:class:`HorizonLayout` is the variable order of a horizon QP, ``z = (z_0, ..., z_{T-1}, x_T)``
+with ``z_k = (x_k, lam_k, u_k, eta_k)`` (:data:`c3bench.problems.names.BLOCKS`).
+
+Part of the plant-free core: imports neither MuJoCo nor CasADi.
 """
 
 from __future__ import annotations
@@ -15,8 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from c3bench.problems.config import MPCConfig
-from c3bench.problems.scene import Scene, target_state
+from c3bench.problems.names import BLOCKS, Block
 
 
 @dataclass
@@ -47,10 +52,12 @@ class MPC:
 
     @property
     def nx(self) -> int:
+        """State dimension."""
         return int(self.Q.shape[0])
 
     @property
     def nu(self) -> int:
+        """Input dimension."""
         return int(self.R.shape[0])
 
     def cost(self, xs: np.ndarray, us: np.ndarray) -> float:
@@ -59,26 +66,6 @@ class MPC:
         stage = np.einsum("ki,ij,kj->", errors[:-1], self.Q, errors[:-1])
         inputs = np.einsum("ki,ij,kj->", us, self.R, us)
         return float(stage + inputs + errors[-1] @ self.Q_f @ errors[-1])
-
-
-def build_mpc(scene: Scene, config: MPCConfig, cube_x0: float = 0.0) -> MPC:
-    """The MPC of ``config`` for ``scene``'s state layout; goal from :func:`target_state`."""
-    weights = np.full(scene.nx, config.q_velocity)
-    weights[scene.cube_pose_indices] = config.q_cube_pose
-    weights[scene.ball_position_indices] = config.q_ball_position
-    Q = np.diag(weights)
-    return MPC(
-        Q=Q,
-        R=config.r_input * np.eye(scene.nu),
-        Q_f=config.terminal_factor * Q,
-        x_target=target_state(scene, config.target_angle, cube_x0),
-        horizon=config.horizon,
-        dt=config.dt,
-        force_limit=scene.config.scene.force_limit,
-    )
-
-
-BLOCKS: tuple[str, ...] = ("x", "lam", "u", "eta")
 
 
 @dataclass(frozen=True)
@@ -97,15 +84,20 @@ class HorizonLayout:
 
     @property
     def step_size(self) -> int:
+        """Length of one ``z_k``."""
         return self.nx + self.nlam + self.nu + self.n_eta
 
     @property
     def size(self) -> int:
+        """Length of ``z``."""
         return self.horizon * self.step_size + self.nx
 
     def block_sizes(self) -> dict[str, int]:
-        sizes = {"x": self.nx, "lam": self.nlam, "u": self.nu, "eta": self.n_eta}
-        return {name: size for name, size in sizes.items() if size > 0}
+        """Sizes of the blocks present in one ``z_k`` (keys :class:`Block`), in :data:`BLOCKS`
+        order."""
+        sizes: dict[str, int] = {Block.X: self.nx, Block.LAM: self.nlam, Block.U: self.nu,
+                                 Block.ETA: self.n_eta}
+        return {name: sizes[name] for name in BLOCKS if sizes[name] > 0}
 
     def offset(self, block: str) -> int:
         """Offset of ``block`` inside one ``z_k``."""
@@ -114,12 +106,12 @@ class HorizonLayout:
             if name == block:
                 return position
             position += size
-        raise KeyError(f"no block {block!r} in this layout")
+        raise KeyError(f"no block {str(block)!r} in this layout")
 
     def index(self, k: int, block: str) -> slice:
         """Slice of ``block`` of step ``k`` in ``z`` (``k = T`` with block ``x`` is ``x_T``)."""
         if k == self.horizon:
-            if block != "x":
+            if block != Block.X:
                 raise KeyError("only x exists at k = T")
             start = self.horizon * self.step_size
             return slice(start, start + self.nx)
@@ -136,14 +128,16 @@ class HorizonLayout:
         for name, size in self.block_sizes().items():
             start = self.offset(name)
             out[name] = steps[:, start:start + size]
-        out["x"] = np.vstack([out["x"], z[self.horizon * self.step_size:][None, :]])
+        out[Block.X] = np.vstack([out[Block.X], z[self.horizon * self.step_size:][None, :]])
         return out
 
     def to_json(self) -> dict[str, Any]:
+        """The layout as JSON (sizes and the block order)."""
         return {"nx": self.nx, "nlam": self.nlam, "nu": self.nu, "n_eta": self.n_eta,
                 "horizon": self.horizon, "order": list(self.block_sizes())}
 
     @classmethod
     def from_json(cls, table: dict[str, Any]) -> HorizonLayout:
+        """The layout written by :meth:`to_json`."""
         return cls(nx=int(table["nx"]), nlam=int(table["nlam"]), nu=int(table["nu"]),
                    n_eta=int(table["n_eta"]), horizon=int(table["horizon"]))

@@ -1,4 +1,5 @@
-"""The cube-tipping scene: MJCF generation, the MuJoCo plant and off-screen rendering.
+"""The cube-tipping scene: MJCF generation, start and goal states, the scene's MPC weights
+(:func:`build_mpc`), the MuJoCo plant and off-screen rendering.
 
 A cube of side ``l`` rests on a table; a ball end effector, moved by a force command ``u``,
 pushes it. Two variants:
@@ -28,11 +29,21 @@ from typing import Literal
 import mujoco
 import numpy as np
 
-from c3bench.problems.config import Config, SceneConfig, load_config
+from c3bench.problems.config import Config, MPCConfig, SceneConfig, load_config
 from c3bench.problems.errors import RenderUnavailable
+from c3bench.problems.mpc import MPC
 
 Variant = Literal["planar", "spatial"]
 VARIANTS: tuple[str, ...] = ("planar", "spatial")
+
+
+def check_variant(variant: str) -> Variant:
+    """``variant`` as a :data:`Variant`; ``ValueError`` unless it is one of :data:`VARIANTS`."""
+    if variant == "planar":
+        return "planar"
+    if variant == "spatial":
+        return "spatial"
+    raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
 
 
 def _check_side(l: float) -> float:
@@ -78,7 +89,7 @@ def make_mjcf(
             '<joint name="cube_z" type="slide" axis="0 0 1"/>'
             '<joint name="cube_theta" type="hinge" axis="0 1 0"/>'
         )
-        ball_axes = (("x", "1 0 0"), ("z", "0 0 1"))
+        ball_axes: tuple[tuple[str, str], ...] = (("x", "1 0 0"), ("z", "0 0 1"))
         corners = [(-half, 0.0, -half), (half, 0.0, -half)]
     else:
         cube_joints = '<freejoint name="cube_free"/>'
@@ -296,6 +307,33 @@ def target_state(scene: Scene, angle: float, cube_x0: float = 0.0) -> np.ndarray
         quat = np.array([math.cos(angle / 2), 0.0, math.sin(angle / 2), 0.0])
         q = np.concatenate([[centre[0], 0.0, centre[1]], quat, [ball[0], 0.0, ball[1]]])
     return np.concatenate([q, np.zeros(scene.nv)])
+
+
+def build_mpc(scene: Scene, config: MPCConfig, cube_x0: float = 0.0) -> MPC:
+    """The MPC of ``config`` for ``scene``'s state layout; goal from :func:`target_state`.
+
+    Parameters
+    ----------
+    scene
+        The controller's scene (its state layout, force limit and goal geometry).
+    config
+        Weights, horizon, step and target angle.
+    cube_x0
+        Initial x of the cube's centre (the goal pivots about that cube's far edge).
+    """
+    weights = np.full(scene.nx, config.q_velocity)
+    weights[scene.cube_pose_indices] = config.q_cube_pose
+    weights[scene.ball_position_indices] = config.q_ball_position
+    Q = np.diag(weights)
+    return MPC(
+        Q=Q,
+        R=config.r_input * np.eye(scene.nu),
+        Q_f=config.terminal_factor * Q,
+        x_target=target_state(scene, config.target_angle, cube_x0),
+        horizon=config.horizon,
+        dt=config.dt,
+        force_limit=scene.config.scene.force_limit,
+    )
 
 
 class Plant:

@@ -12,17 +12,21 @@ A suite is generated in three steps:
    (``model_l``, the seed's shrunk 0.29 cube) linearised at that state.
 
 The ADMM iterates ``(delta, w)`` behind ``c3plus_qp``/``c3_qp``/``projection`` come from a
-*capture* function. Without one (the default of this module) a provisional, deterministic
-sequence is used: ``delta_k = (x0, 0, u_prev, 0)``, ``w = 0``, and for projections a seeded
-random point; its metadata says ``"capture": "provisional"``. The rho schedule is always the
-seed's: ``rho_x = 1``, ``rho_u = 0.1``, ``rho_lam = rho_eta = 50 * 2^i`` at ADMM iteration ``i``.
+*capture* function (:mod:`c3bench.problems.capture`, which also holds the suite specifications
+:data:`~c3bench.problems.capture.SUITES`). Without one (the default of this module) the
+provisional, deterministic :func:`~c3bench.problems.capture.provisional_capture` is used; its
+metadata says ``"capture": "provisional"``. The rho schedule is always the seed's:
+``rho_x = 1``, ``rho_u = 0.1``, ``rho_lam = rho_eta = 50 * 2^i`` at ADMM iteration ``i``.
+
+This module runs the plant (MuJoCo); the instance builders it calls
+(:mod:`c3bench.problems.families`) are in the plant-free core.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, field
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,67 +34,27 @@ import mujoco
 import numpy as np
 
 from c3bench.problems import families
+from c3bench.problems.capture import (
+    SUITES,
+    Capture,
+    CaptureContext,
+    SuiteSpec,
+    provisional_capture,
+)
 from c3bench.problems.config import Config, load_config
+from c3bench.problems.errors import InputError
 from c3bench.problems.instance import Problem, atomic_write_bytes, save_problem
-from c3bench.problems.lcs import LCS, contact_frames, linearize
-from c3bench.problems.mpc import MPC, HorizonLayout, build_mpc
-from c3bench.problems.scene import Plant, Scene, build_scene, home_state
-
-
-@dataclass(frozen=True)
-class SuiteSpec:
-    """What a suite contains.
-
-    Attributes
-    ----------
-    name
-        ``quick``, ``default`` or ``full``.
-    n_states
-        States sampled along the push.
-    admm_iterations
-        ADMM iterations at which QP steps are captured.
-    projection_iterations, projection_steps
-        ADMM iterations and horizon steps at which projections are captured.
-    model_l
-        Cube side of the controller's model.
-    variant
-        Scene variant.
-    seed
-        Seed of every random choice.
-    duration
-        Length of the scripted push (s).
-    contact_band
-        Ball-cube distance (m) below which a recorded step may be sampled.
-    """
-
-    name: str
-    n_states: int
-    admm_iterations: tuple[int, ...]
-    projection_iterations: tuple[int, ...]
-    projection_steps: tuple[int, ...] = (0, -1)
-    model_l: float = 0.29
-    variant: str = "planar"
-    seed: int = 0
-    duration: float = 1.5
-    contact_band: float = 0.02
-
-
-SUITES: dict[str, SuiteSpec] = {
-    "quick": SuiteSpec("quick", n_states=2, admm_iterations=(0, 3, 6, 9),
-                       projection_iterations=(0, 9)),
-    "default": SuiteSpec("default", n_states=6, admm_iterations=tuple(range(10)),
-                         projection_iterations=(0, 3, 6, 9)),
-    "full": SuiteSpec("full", n_states=16, admm_iterations=tuple(range(10)),
-                      projection_iterations=tuple(range(10)), projection_steps=(0, 3, -1)),
-}
-
-
-def seed_rho(iteration: int) -> dict[str, float]:
-    """The seed's schedule: ``rho_x = 1``, ``rho_u = 0.1``, ``rho_lam = rho_eta = 50 * 2^i``."""
-    if iteration < 0:
-        raise ValueError(f"ADMM iteration must be >= 0, got {iteration}")
-    grow = 50.0 * 2.0**iteration
-    return {"x": 1.0, "lam": grow, "u": 0.1, "eta": grow}
+from c3bench.problems.linearize import contact_frames, linearize
+from c3bench.problems.mpc import HorizonLayout
+from c3bench.problems.names import Block, Family, Precision, Variant
+from c3bench.problems.scene import (
+    Plant,
+    Scene,
+    build_mpc,
+    build_scene,
+    check_variant,
+    home_state,
+)
 
 
 @dataclass
@@ -113,7 +77,7 @@ def scripted_push(config: Config | None = None, duration: float = 1.5,
     clipped to the force limit.
     """
     cfg = config or load_config()
-    plant_scene = build_scene(variant=variant, config=cfg)
+    plant_scene = build_scene(variant=check_variant(variant), config=cfg)
     plant = Plant(plant_scene)
     x = home_state(plant_scene)
     plant.reset(x)
@@ -161,70 +125,10 @@ def sample_states(record: PushRecord, n_states: int, band: float) -> list[int]:
     return sorted({int(candidates[i]) for i in picks})
 
 
-@dataclass
-class CaptureContext:
-    """Everything a capture function needs at one sampled state."""
-
-    spec: SuiteSpec
-    state_index: int
-    x0: np.ndarray
-    u_prev: np.ndarray
-    lcs: LCS
-    mpc: MPC
-    scene: Scene
-    rng: np.random.Generator
-    base_meta: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass
-class CapturedIterate:
-    """One ADMM iteration's data: the QP's ``delta``/``w`` and rho, and the projection input.
-
-    ``delta``, ``w`` are (T x step size) in the C3+ layout ``(x, lam, u, eta)``; C3's QP
-    drops the ``eta`` columns. ``projection_v`` (T x step size) is the point each step's
-    projection receives (``z + w``).
-    """
-
-    iteration: int
-    rho: dict[str, float]
-    delta: np.ndarray
-    w: np.ndarray
-    projection_v: np.ndarray
-    source: str
-
-
-Capture = Callable[[CaptureContext], Iterable[CapturedIterate]]
-
-
-def provisional_capture(context: CaptureContext) -> list[CapturedIterate]:
-    """Deterministic stand-in for controller iterates (see the module docstring)."""
-    lcs, spec = context.lcs, context.spec
-    layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, context.mpc.horizon)
-    base = np.zeros(layout.step_size)
-    base[layout.index(0, "x")] = context.x0
-    base[layout.index(0, "u")] = context.u_prev
-    delta = np.tile(base, (layout.horizon, 1))
-    iterations = sorted(set(spec.admm_iterations) | set(spec.projection_iterations))
-    out = []
-    for i in iterations:
-        v = delta.copy()
-        lam_s, eta_s = layout.index(0, "lam"), layout.index(0, "eta")
-        x_s, u_s = layout.index(0, "x"), layout.index(0, "u")
-        for k in range(layout.horizon):
-            lam = np.abs(context.rng.normal(0.0, 2.0, lcs.nlam))
-            v[k, x_s] += context.rng.normal(0.0, 0.01, lcs.nx)
-            v[k, u_s] += context.rng.normal(0.0, 1.0, lcs.nu)
-            v[k, lam_s] = lam
-            v[k, eta_s] = lcs.gap(v[k, x_s], v[k, u_s], lam)
-        out.append(CapturedIterate(i, seed_rho(i), delta, np.zeros_like(delta), v,
-                                   "provisional"))
-    return out
-
-
 def _c3_columns(layout: HorizonLayout) -> np.ndarray:
     """Columns of a C3+ step vector that C3's QP keeps (everything but eta)."""
     keep = np.ones(layout.step_size, dtype=bool)
-    keep[layout.index(0, "eta")] = False
+    keep[layout.index(0, Block.ETA)] = False
     return keep
 
 
@@ -241,28 +145,28 @@ def build_state_instances(context: CaptureContext, capture: Capture) -> list[Pro
                      "capture": iterate.source})
         if iterate.iteration in spec.admm_iterations:
             problems.append(families.consensus_qp(
-                "c3plus_qp", f"c3plus_qp-{tag}-i{iterate.iteration:02d}", lcs, mpc,
+                Family.C3PLUS_QP, f"{Family.C3PLUS_QP}-{tag}-i{iterate.iteration:02d}", lcs, mpc,
                 context.x0, iterate.rho, iterate.delta, iterate.w, meta=meta))
-            c3_rho = {k: v for k, v in iterate.rho.items() if k != "eta"}
+            c3_rho = {k: v for k, v in iterate.rho.items() if k != Block.ETA}
             problems.append(families.consensus_qp(
-                "c3_qp", f"c3_qp-{tag}-i{iterate.iteration:02d}", lcs, mpc, context.x0,
-                c3_rho, iterate.delta[:, keep], iterate.w[:, keep], meta=meta))
+                Family.C3_QP, f"{Family.C3_QP}-{tag}-i{iterate.iteration:02d}", lcs, mpc,
+                context.x0, c3_rho, iterate.delta[:, keep], iterate.w[:, keep], meta=meta))
         if iterate.iteration in spec.projection_iterations:
             weights = families.weight_vector(HorizonLayout(lcs.nx, lcs.nlam, lcs.nu,
                                                            lcs.nlam, 1), iterate.rho)
             for step in spec.projection_steps:
                 k = step % mpc.horizon
-                for variant in ("c3", "c3plus"):
+                for variant in (Variant.C3, Variant.C3PLUS):
                     U = weights.copy()
-                    if variant == "c3":
-                        U[layout.index(0, "eta")] = 0.0
+                    if variant == Variant.C3:
+                        U[layout.index(0, Block.ETA)] = 0.0
                     step_meta = dict(meta, horizon_step=k)
                     problems.append(families.projection(
-                        f"projection-{variant}-{tag}-i{iterate.iteration:02d}-k{k}", lcs,
+                        f"{Family.PROJECTION}-{variant}-{tag}-i{iterate.iteration:02d}-k{k}", lcs,
                         iterate.projection_v[k], U, variant, meta=step_meta))
     meta = dict(context.base_meta)
-    problems.append(families.mpcc(f"mpcc-{tag}", lcs, mpc, context.x0, meta=meta))
-    problems.append(families.lcp(f"lcp-{tag}", lcs, context.x0, context.u_prev, meta=meta))
+    problems.append(families.mpcc(f"{Family.MPCC}-{tag}", lcs, mpc, context.x0, meta=meta))
+    problems.append(families.lcp(f"{Family.LCP}-{tag}", lcs, context.x0, context.u_prev, meta=meta))
     return problems
 
 
@@ -279,15 +183,15 @@ def generate_suite(
     the sampled states and the instance counts. Regenerating with the same arguments writes
     byte-identical files.
     """
-    spec = SUITES[suite] if isinstance(suite, str) else suite
     if isinstance(suite, str) and suite not in SUITES:
-        raise ValueError(f"unknown suite {suite!r}; known: {', '.join(SUITES)}")
+        raise InputError(f"unknown suite {suite!r}; known: {', '.join(SUITES)}")
+    spec = SUITES[suite] if isinstance(suite, str) else suite
     cfg = config or load_config()
     capture = capture or provisional_capture
     out = Path(out_dir)
     record = scripted_push(cfg, spec.duration, spec.variant)
     indices = sample_states(record, spec.n_states, spec.contact_band)
-    model_scene = build_scene(l=spec.model_l, variant=spec.variant, config=cfg)  # type: ignore[arg-type]
+    model_scene = build_scene(l=spec.model_l, variant=check_variant(spec.variant), config=cfg)
     mpc = build_mpc(model_scene, cfg.mpc)
     written: list[Path] = []
     counts: dict[str, int] = {}
@@ -303,7 +207,7 @@ def generate_suite(
             "suite": spec.name, "scene": spec.variant, "l": spec.model_l,
             "l_plant": cfg.scene.cube_side, "dt": cfg.mpc.dt, "T": cfg.mpc.horizon,
             "state_index": index, "time": round(index * cfg.mpc.dt, 10),
-            "seed": spec.seed, "precision": "float64", "contact_model": lcs.contact_model,
+            "seed": spec.seed, "precision": Precision.FLOAT64, "contact_model": lcs.contact_model,
             "target_angle": cfg.mpc.target_angle,
         }
         context = CaptureContext(spec, index, x0, u_prev, lcs, mpc, model_scene,

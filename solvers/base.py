@@ -1,9 +1,13 @@
 """The solver contract: settings profiles, ``Result`` and the ``Backend`` base class.
 
-Conventions follow qpsolvers: for ``min 1/2 x^T P x + q^T x`` s.t. ``A x = b``, ``G x <= h``,
+Conventions follow qpsolvers (Caron et al., *qpsolvers: Quadratic Programming Solvers in
+Python*, 2024): for ``min 1/2 x^T P x + q^T x`` s.t. ``A x = b``, ``G x <= h``,
 ``lb <= x <= ub`` a solution carries the primal ``x``, the equality duals ``y``, the inequality
 duals ``z >= 0`` and the box duals ``z_box`` (negative where a lower bound is active, positive
 where an upper bound is), so that the dual residual is ``P x + q + A^T y + G^T z + z_box``.
+
+Names are types (:mod:`c3bench.problems.names`): families, profiles, precisions and failure
+categories are :class:`enum.StrEnum` members, equal to (and stored as) their strings.
 """
 
 from __future__ import annotations
@@ -11,23 +15,22 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 from dataclasses import dataclass, field, replace
-from typing import Any
+from types import ModuleType
+from typing import Any, TypeVar
 
 import numpy as np
 
+from c3bench.problems.errors import BackendUnavailable, InputError
 from c3bench.problems.instance import Problem
+from c3bench.problems.names import PROFILE_TOLERANCE, Failure, Family, Precision, Profile
 
-# name -> tolerance used both for the solver's options and for the success check.
-PROFILES: dict[str, float] = {
-    "default": 1e-3,
-    "low_accuracy": 1e-3,
-    "mid_accuracy": 1e-6,
-    "high_accuracy": 1e-9,
-}
-PRECISIONS: tuple[str, ...] = ("float64", "float32")
-QP_FAMILIES: tuple[str, ...] = ("c3plus_qp", "c3_qp", "lcp")
-EQUALITY_QP_FAMILIES: tuple[str, ...] = ("c3plus_qp", "c3_qp")
-COMPLEMENTARITY_FAMILIES: tuple[str, ...] = ("projection", "mpcc")
+PROFILES: dict[str, float] = {str(profile): tolerance
+                              for profile, tolerance in PROFILE_TOLERANCE.items()}
+"""Profile name -> tolerance: :data:`c3bench.problems.names.PROFILE_TOLERANCE` by string (an
+alias kept while callers move to the names module)."""
+PRECISIONS: tuple[str, ...] = tuple(str(precision) for precision in Precision)
+"""Precision names: :class:`c3bench.problems.names.Precision` by string (an alias kept while
+callers move to the names module)."""
 
 
 @dataclass(frozen=True)
@@ -37,52 +40,72 @@ class Settings:
     Attributes
     ----------
     profile
-        ``default`` keeps each solver's own options (success is still judged at
-        :data:`PROFILES` ``["default"]``); the other profiles set the solver's absolute and
-        relative tolerances to ``tolerance``.
+        A :class:`~c3bench.problems.names.Profile`: ``default`` keeps each solver's own
+        options (success is still judged at ``PROFILE_TOLERANCE[Profile.DEFAULT]``); the other
+        profiles set the solver's absolute and relative tolerances to ``tolerance``.
     tolerance
         Target accuracy and success threshold for the residuals.
     time_limit
         Wall-clock seconds per solve; enforced by the registry even where a solver has none.
     precision
-        ``float64`` or ``float32`` (only backends listing it in ``precisions`` run float32).
+        A :class:`~c3bench.problems.names.Precision` (only backends listing it in
+        ``precisions`` run float32).
     max_iterations
         Iteration cap passed to solvers that take one (``None``: solver default).
     options
         Extra solver-specific options, passed through unchanged.
+
+    ``profile`` and ``precision`` may be given as strings; they are stored as the enum
+    members (equal to those strings).
     """
 
-    profile: str = "default"
-    tolerance: float = PROFILES["default"]
+    profile: str = Profile.DEFAULT
+    tolerance: float = PROFILE_TOLERANCE[Profile.DEFAULT]
     time_limit: float = 10.0
-    precision: str = "float64"
+    precision: str = Precision.FLOAT64
     max_iterations: int | None = None
     options: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.profile not in PROFILES:
-            raise ValueError(f"profile must be one of {tuple(PROFILES)}, got {self.profile!r}")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        object.__setattr__(self, "profile", _member(Profile, self.profile, "profile"))
+        object.__setattr__(self, "precision", _member(Precision, self.precision, "precision"))
         if not self.tolerance > 0:
-            raise ValueError(f"tolerance must be > 0, got {self.tolerance!r}")
+            raise InputError(f"tolerance must be > 0, got {self.tolerance!r}")
         if not self.time_limit > 0:
-            raise ValueError(f"time_limit must be > 0, got {self.time_limit!r}")
+            raise InputError(f"time_limit must be > 0, got {self.time_limit!r}")
 
     @property
     def sets_tolerance(self) -> bool:
         """Whether the backend should pass ``tolerance`` to the solver."""
-        return self.profile != "default"
+        return self.profile != Profile.DEFAULT
+
+    @property
+    def dtype(self) -> np.dtype[np.floating]:
+        """The numpy dtype of ``precision``."""
+        return Precision(self.precision).dtype
 
     def with_(self, **changes: Any) -> Settings:
+        """A copy with ``changes`` applied (``dataclasses.replace``)."""
         return replace(self, **changes)
 
 
+_E = TypeVar("_E", Profile, Precision)
+
+
+def _member(kind: type[_E], value: str, what: str) -> _E:
+    """``kind(value)``; an :class:`InputError` listing the choices when it is none of them."""
+    try:
+        return kind(value)
+    except ValueError:
+        choices = tuple(str(member) for member in kind)
+        raise InputError(f"{what} must be one of {choices}, got {value!r}") from None
+
+
 def settings_for(profile: str, **changes: Any) -> Settings:
-    """The settings of a named profile, with optional overrides."""
-    if profile not in PROFILES:
-        raise ValueError(f"profile must be one of {tuple(PROFILES)}, got {profile!r}")
-    return Settings(profile=profile, tolerance=PROFILES[profile], **changes)
+    """The settings of a named profile (its tolerance from ``PROFILE_TOLERANCE``), with
+    optional overrides."""
+    member = _member(Profile, profile, "profile")
+    return Settings(profile=member, tolerance=PROFILE_TOLERANCE[member], **changes)
 
 
 @dataclass
@@ -119,8 +142,10 @@ class Result:
     diagnostics
         Scalars a backend measures about itself (e.g. ``cond_schur_raw``).
     failure
-        Category of a failure: ``""`` (none), ``error``, ``timeout``, ``invalid_input``,
-        ``non_finite``, ``unsupported``, ``unavailable``, ``infeasible``.
+        A :class:`~c3bench.problems.names.Failure`: always ``Failure.NONE`` (``""``) when the
+        solver claims a solution; otherwise the category of the failure, or ``Failure.NONE``
+        when the solver returned without claiming one and without an error (reported as
+        "not found").
     """
 
     solver: str
@@ -137,14 +162,23 @@ class Result:
     objective: float | None = None
     trace: dict[str, list[float]] = field(default_factory=dict)
     diagnostics: dict[str, float] = field(default_factory=dict)
-    failure: str = ""
+    failure: str = Failure.NONE
 
     @classmethod
-    def failed(cls, solver: str, problem: str, failure: str, status: str,
+    def failed(cls, solver: str, problem: str, failure: Failure, status: str,
                **extra: Any) -> Result:
         """A failure record with a category and a reason."""
         return cls(solver=solver, problem=problem, found=False, status=status,
-                   failure=failure, **extra)
+                   failure=Failure(failure), **extra)
+
+
+def require_module(name: str) -> ModuleType:
+    """Import the module ``name``; :class:`BackendUnavailable` (with the reason) when it is
+    missing or fails to load."""
+    try:
+        return importlib.import_module(name)
+    except Exception as error:  # any import failure (not only ImportError) means unavailable
+        raise BackendUnavailable(f"cannot import {name}: {error}") from error
 
 
 class Backend:
@@ -153,23 +187,36 @@ class Backend:
     Subclasses set ``name``, ``families`` (what they accept), ``package`` (the import name
     whose version is reported), optionally ``precisions`` and ``description``, and implement
     :meth:`solve`. They measure ``build_time`` and ``solve_time`` with
-    :func:`solvers.timing.Stopwatch` and leave time limits and error capture to the registry.
+    :class:`c3bench.solvers.timing.Stopwatch` and leave time limits and error capture to the
+    registry.
+
+    A backend that cannot run here (package missing, plugin absent, no licence) raises
+    :class:`~c3bench.problems.errors.BackendUnavailable` from :meth:`require` (or from
+    :meth:`solve`, when that is only found out while solving); the registry lists it as
+    unavailable and records such a solve as ``Failure.UNAVAILABLE``.
     """
 
     name: str = ""
-    families: tuple[str, ...] = ()
+    families: tuple[Family, ...] = ()
     package: str = ""
-    precisions: tuple[str, ...] = ("float64",)
+    precisions: tuple[Precision, ...] = (Precision.FLOAT64,)
     description: str = ""
 
+    def require(self) -> None:
+        """Raise :class:`BackendUnavailable` when the backend cannot run in this process.
+
+        Default: ``package`` (when set) imports. Subclasses extend it with plugin or licence
+        checks.
+        """
+        if self.package:
+            require_module(self.package)
+
     def availability(self) -> tuple[bool, str]:
-        """``(True, "")`` or ``(False, reason)``. Default: the package imports."""
-        if not self.package:
-            return True, ""
+        """``(True, "")`` or ``(False, reason)``, from :meth:`require`."""
         try:
-            importlib.import_module(self.package)
-        except Exception as error:  # noqa: BLE001 - recorded, never raised
-            return False, f"cannot import {self.package}: {error}"
+            self.require()
+        except BackendUnavailable as error:
+            return False, str(error)
         return True, ""
 
     def version(self) -> str:
@@ -192,4 +239,5 @@ class Backend:
 
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
+        """Solve ``problem``; failures are returned as a :class:`Result`, not raised."""
         raise NotImplementedError

@@ -102,23 +102,30 @@ from typing import Any
 import numpy as np
 
 from c3bench.problems import families
+from c3bench.problems.capture import Capture, CaptureContext, CapturedIterate
 from c3bench.problems.instance import Problem
 from c3bench.problems.lcs import LCS
 from c3bench.problems.mpc import MPC, HorizonLayout
-from c3bench.problems.suites import Capture, CaptureContext, CapturedIterate
+from c3bench.problems.names import (
+    BLOCKS,
+    REFERENCE_ADMM_ITERATIONS,
+    REFERENCE_RHO0,
+    REFERENCE_RHO_BLOCKS,
+    REFERENCE_RHO_FACTOR,
+    Block,
+    Family,
+    Profile,
+    Variant,
+)
 from c3bench.solvers import registry
 from c3bench.solvers.base import Backend, Result, Settings, settings_for
 from c3bench.solvers.lcp import lemke
 from c3bench.solvers.residuals import complementarity_violation
 
-VARIANTS: tuple[str, ...] = ("c3plus", "c3")
+VARIANTS: tuple[Variant, ...] = (Variant.C3PLUS, Variant.C3)
 RHO_SCHEDULES: tuple[str, ...] = ("geometric", "adaptive", "residual_balancing")
 STOPPING_RULES: tuple[str, ...] = ("fixed", "residual")
 OUTPUTS: tuple[str, ...] = ("delta", "z")
-SEED_RHO0: dict[str, float] = {"x": 1.0, "lam": 50.0, "u": 0.1, "eta": 50.0}
-"""The seed's initial weights (rho_lam and rho_eta then double every iteration)."""
-
-_RHO_KEYS: tuple[str, ...] = ("x", "lam", "u", "eta")
 WEIGHT_FLOOR = 1e-6
 """Smallest sample weight in the robust QP, relative to the largest."""
 
@@ -172,17 +179,18 @@ class C3Options:
         Keep every iteration's ``(rho, delta, w, z)`` (for capture and plots).
     """
 
-    variant: str = "c3plus"
+    variant: str = Variant.C3PLUS
     qp_backend: str = "equilibrated_kkt"
     qp_settings: Settings | None = None
     projection_backend: str = "scip"
     projection_settings: Settings = field(
-        default_factory=lambda: settings_for("mid_accuracy", time_limit=5.0))
-    admm_iterations: int = 10
-    rho0: dict[str, float] = field(default_factory=lambda: dict(SEED_RHO0))
+        default_factory=lambda: settings_for(Profile.MID_ACCURACY, time_limit=5.0))
+    admm_iterations: int = REFERENCE_ADMM_ITERATIONS
+    rho0: dict[str, float] = field(default_factory=lambda: {
+        str(block): value for block, value in REFERENCE_RHO0.items()})
     rho_schedule: str = "geometric"
-    rho_blocks: tuple[str, ...] = ("lam", "eta")
-    rho_factor: float = 2.0
+    rho_blocks: tuple[str, ...] = REFERENCE_RHO_BLOCKS
+    rho_factor: float = REFERENCE_RHO_FACTOR
     adaptive_beta: float = 2.0
     adaptive_gamma: float = 0.25
     balance_mu: float = 10.0
@@ -209,9 +217,10 @@ class C3Options:
         if self.qp_settings is None:
             self.qp_settings = Settings(options={"diagnostics": False}) \
                 if self.qp_backend == "equilibrated_kkt" else Settings()
-        self.rho0 = families.check_rho(self.rho0, _RHO_KEYS)
+        self.variant = Variant(self.variant)
+        self.rho0 = families.check_rho(self.rho0, BLOCKS)
         self.rho_blocks = tuple(self.rho_blocks)
-        unknown = set(self.rho_blocks) - set(_RHO_KEYS)
+        unknown = set(self.rho_blocks) - set(BLOCKS)
         if unknown:
             raise ValueError(f"rho_blocks has unknown blocks {sorted(unknown)}")
         for name in ("rho_factor", "adaptive_beta", "adaptive_gamma", "balance_mu",
@@ -221,8 +230,9 @@ class C3Options:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
 
     @property
-    def qp_family(self) -> str:
-        return "c3plus_qp" if self.variant == "c3plus" else "c3_qp"
+    def qp_family(self) -> Family:
+        """The family of the QP step: ``c3plus_qp`` or ``c3_qp``."""
+        return Family.C3PLUS_QP if self.variant == Variant.C3PLUS else Family.C3_QP
 
     @property
     def source(self) -> str:
@@ -265,12 +275,14 @@ def rescale_dual(w: np.ndarray, layout: HorizonLayout, rho_old: Mapping[str, flo
                  rho_new: Mapping[str, float]) -> np.ndarray:
     """``w * G_old / G_new`` blockwise (keeps ``y = 2 G w``); ``w`` is (..., T, step size)."""
     ratio = families.weight_vector(layout, rho_old) / families.weight_vector(layout, rho_new)
-    return np.asarray(w) * ratio
+    rescaled: np.ndarray = np.asarray(w) * ratio
+    return rescaled
 
 
 def dual_update(w: np.ndarray, z_steps: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """Scaled dual ascent ``w + z - delta`` (all (..., T, step size))."""
-    return np.asarray(w) + np.asarray(z_steps) - np.asarray(delta)
+    updated: np.ndarray = np.asarray(w) + np.asarray(z_steps) - np.asarray(delta)
+    return updated
 
 
 def shift_warm_start(delta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -289,7 +301,7 @@ def shift_warm_start(delta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
 
 def qp_layout(lcs: LCS, horizon: int, variant: str) -> HorizonLayout:
     """Layout of the QP step: with ``eta`` for C3+, without for C3."""
-    return HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam if variant == "c3plus" else 0,
+    return HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam if variant == Variant.C3PLUS else 0,
                          horizon)
 
 
@@ -349,7 +361,9 @@ class C3Iterate:
 
     @property
     def projection_v(self) -> np.ndarray:
-        return self.z_steps + self.w
+        """``z + w``: the point the projection received."""
+        point: np.ndarray = self.z_steps + self.w
+        return point
 
 
 @dataclass
@@ -403,8 +417,8 @@ class C3Trace:
     def append(self, iteration: int, rho: Mapping[str, float], **values: Any) -> None:
         """Record one iteration; fields not given take their "not measured" value."""
         self.iteration.append(iteration)
-        for key in _RHO_KEYS:
-            getattr(self, f"rho_{key}").append(float(rho[key]))
+        for block in BLOCKS:
+            getattr(self, f"rho_{block}").append(float(rho[block]))
         defaults: dict[str, Any] = {
             "consensus_residual": math.nan, "consensus_residual_inf": math.nan,
             "dual_residual": math.nan, "complementarity_delta": math.nan,
@@ -471,12 +485,14 @@ class C3Solution:
     @property
     def delta0(self) -> np.ndarray:
         """Sample 0's ``delta`` (T x step size)."""
-        return self.delta[0]
+        first: np.ndarray = self.delta[0]
+        return first
 
     @property
     def w0(self) -> np.ndarray:
         """Sample 0's ``w`` (T x step size)."""
-        return self.w[0]
+        first: np.ndarray = self.w[0]
+        return first
 
 
 # --- the (possibly stacked) QP model ----------------------------------------------------------
@@ -548,7 +564,8 @@ class _Horizon:
         P = np.zeros((n, n))
         q = np.zeros(n)
         offset = 0.0
-        A_rows, b_rows = [], []
+        A_rows: list[np.ndarray] = []
+        b_rows: list[np.ndarray] = []
         lb = np.full(n, -np.inf) if self.options.input_bounds else None
         ub = np.full(n, np.inf) if self.options.input_bounds else None
         for j, qp in enumerate(qps):
@@ -557,6 +574,7 @@ class _Horizon:
             P[np.ix_(idx, idx)] += p * qp.P
             q[idx] += p * qp.q
             offset += p * qp.objective_offset
+            assert qp.A is not None and qp.b is not None  # consensus_qp always has A z = b
             rows = np.zeros((qp.n_eq, n))
             rows[:, idx] = qp.A
             A_rows.append(rows)
@@ -609,7 +627,8 @@ def project_step_c3plus(v: np.ndarray, layout: HorizonLayout, rho: Mapping[str, 
 
     out = np.array(v, dtype=float, copy=True)
     lam_s, eta_s = layout.index(0, "lam"), layout.index(0, "eta")
-    lam, eta = c3plus_projection(out[..., lam_s], out[..., eta_s], rho["lam"], rho["eta"])
+    lam, eta = c3plus_projection(out[..., lam_s], out[..., eta_s], rho[Block.LAM],
+                                 rho[Block.ETA])
     out[..., lam_s] = lam
     out[..., eta_s] = eta
     return out
@@ -627,9 +646,10 @@ def project_step_c3(v: np.ndarray, lcs: LCS, rho: Mapping[str, float], backend: 
     layout1 = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, 1)
     v_full = to_full_steps(np.asarray(v, dtype=float)[None, :], lcs,
                            HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, 0, 1))[0]
-    U = families.weight_vector(layout1, {**{k: float(rho[k]) for k in ("x", "lam", "u")},
-                                         "eta": 0.0})
-    problem = families.projection(name, lcs, v_full, U, "c3")
+    U = families.weight_vector(layout1, {**{k: float(rho[k]) for k in (Block.X, Block.LAM,
+                                                                         Block.U)},
+                                         Block.ETA: 0.0})
+    problem = families.projection(name, lcs, v_full, U, Variant.C3)
     result = backend.solve(problem, settings)
     x = result.x
     if x is None or np.shape(x) != (problem.n,) or not np.all(np.isfinite(x)):
@@ -648,9 +668,9 @@ def _kkt_condition(problem: Problem) -> float:
     n, m = problem.n, problem.n_eq
     K = np.zeros((n + m, n + m))
     K[:n, :n] = problem.P
-    if m:
-        K[:n, n:] = problem.A.T  # type: ignore[union-attr]
-        K[n:, :n] = problem.A  # type: ignore[assignment]
+    if m and problem.A is not None:
+        K[:n, n:] = problem.A.T
+        K[n:, :n] = problem.A
     return float(np.linalg.cond(K))
 
 
@@ -694,7 +714,7 @@ def _admm(model: _Horizon, options: C3Options, delta_init: np.ndarray, w_init: n
     projection_backend: Backend | None = None
     try:
         qp_backend = registry.get(options.qp_backend)
-        if options.variant == "c3":
+        if options.variant == Variant.C3:
             projection_backend = registry.get(options.projection_backend)
     except KeyError as error:
         status = str(error.args[0])
@@ -729,7 +749,7 @@ def _admm(model: _Horizon, options: C3Options, delta_init: np.ndarray, w_init: n
         v = steps_i + w
         projection_start = time.perf_counter()
         try:
-            if options.variant == "c3plus":
+            if options.variant == Variant.C3PLUS:
                 new_delta = project_step_c3plus(v, layout, rho)
             else:
                 assert projection_backend is not None
@@ -886,7 +906,8 @@ def normalise_weights(weights: Sequence[float] | np.ndarray, samples: int) -> np
         raise ValueError(f"weights must have shape ({samples},), got {array.shape}")
     if not np.all(np.isfinite(array)) or np.any(array < 0) or array.sum() <= 0:
         raise ValueError("weights must be finite, >= 0 and not all zero")
-    return array / array.sum()
+    normalised: np.ndarray = array / array.sum()
+    return normalised
 
 
 def solve_robust(lcs_samples: Sequence[LCS], weights: Sequence[float] | np.ndarray | None,
@@ -1083,7 +1104,8 @@ def lcp_prediction_weights(lcs_samples: Sequence[LCS], observations: Sequence[Ob
         raise ValueError(f"temperature must be a finite number > 0, got {temperature!r}")
     logits = np.where(finite, -(errors - errors[finite].min()) / temperature, -np.inf)
     weights = np.exp(logits)
-    return weights / weights.sum()
+    normalised: np.ndarray = weights / weights.sum()
+    return normalised
 
 
 # --- capture for the suites -------------------------------------------------------------------
@@ -1099,7 +1121,7 @@ def iterate_to_capture(iterate: C3Iterate, lcs: LCS, layout: HorizonLayout, sour
     w = to_full_steps(iterate.w[sample], lcs, layout, homogeneous=True)
     v = to_full_steps(iterate.projection_v[sample], lcs, layout)
     return CapturedIterate(iteration=iterate.iteration,
-                           rho={k: float(iterate.rho[k]) for k in _RHO_KEYS},
+                           rho={k: float(iterate.rho[k]) for k in BLOCKS},
                            delta=delta, w=w, projection_v=v, source=source)
 
 
@@ -1109,7 +1131,7 @@ def controller_capture(options: C3Options | None = None) -> Capture:
     At each sampled state it runs :func:`solve_c3` from a cold start on the context's LCS and
     MPC, with a fixed iteration count covering every iteration the suite asks for (at least
     ``options.admm_iterations``), and yields every completed iteration as a
-    :class:`problems.suites.CapturedIterate` (C3+ layout, :func:`iterate_to_capture`) with
+    :class:`c3bench.problems.capture.CapturedIterate` (C3+ layout, :func:`iterate_to_capture`) with
     ``source = "controller:<variant>/<qp_backend>"``. Deterministic when the backends are.
     Iterations after a QP failure do not exist and are not yielded.
     """

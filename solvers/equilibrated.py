@@ -41,13 +41,22 @@ All arithmetic runs in the requested dtype (``float32`` or ``float64``); the rep
 condition numbers and violations are computed afterwards in float64 against the original
 data. :meth:`EquilibratedKKT.factorize` does steps 1-7 (everything that depends only on
 ``Q`` and ``A``) once; :meth:`EquilibratedKKT.solve` does steps 8-11 for any ``(c, b)``, so a
-controller can reuse a factorisation while ``rho`` does not change.
+controller can reuse a factorisation while ``rho`` does not change. The per-instance table
+of condition numbers for reports is :func:`c3bench.solvers.conditioning.conditioning_table`.
+
+References
+----------
+D. Ruiz, "A scaling algorithm to equilibrate both rows and columns norms in matrices",
+Technical Report RAL-TR-2001-034, Rutherford Appleton Laboratory, 2001 (steps 2 and 6).
+
+G. H. Golub and C. F. Van Loan, *Matrix Computations*, 4th ed., Johns Hopkins University
+Press, 2013 (Cholesky, Schur complement and least-norm projection by QR).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -55,9 +64,10 @@ import numpy as np
 import scipy.linalg
 
 from c3bench.problems.errors import NotPositiveDefiniteError
+from c3bench.problems.names import Precision
 
-DTYPES: dict[str, type[np.floating[Any]]] = {"float64": np.float64, "float32": np.float32}
 MAX_FALLBACKS = 10
+"""Most ridge increases of the Cholesky fallback (step 8)."""
 
 
 @dataclass(frozen=True)
@@ -137,10 +147,13 @@ ABLATIONS: dict[str, EquilibrationSteps] = {
 }
 
 
-def _dtype(precision: str) -> type[np.floating[Any]]:
-    if precision not in DTYPES:
-        raise ValueError(f"precision must be one of {tuple(DTYPES)}, got {precision!r}")
-    return DTYPES[precision]
+def scalar_type(precision: str) -> type[np.floating[Any]]:
+    """The numpy scalar type of a :class:`~c3bench.problems.names.Precision` name
+    (``ValueError`` for any other name)."""
+    if precision not in tuple(Precision):
+        raise ValueError(f"precision must be one of {tuple(map(str, Precision))}, got "
+                         f"{precision!r}")
+    return Precision(precision).dtype.type
 
 
 def _cholesky(matrix: np.ndarray, what: str) -> tuple[np.ndarray, bool]:
@@ -154,7 +167,7 @@ def _cholesky(matrix: np.ndarray, what: str) -> tuple[np.ndarray, bool]:
         raise NotPositiveDefiniteError(f"{what} cannot be factorised: {error}") from error
     if not np.all(np.isfinite(factor[0])):
         raise NotPositiveDefiniteError(f"{what}: Cholesky factor is not finite")
-    return factor
+    return np.asarray(factor[0]), bool(factor[1])
 
 
 @dataclass
@@ -210,7 +223,7 @@ class EquilibratedKKT:
     @classmethod
     def factorize(cls, Q: np.ndarray, A: np.ndarray,
                   steps: EquilibrationSteps | None = None,
-                  precision: str = "float64") -> EquilibratedKKT:
+                  precision: str = Precision.FLOAT64) -> EquilibratedKKT:
         """Steps 1-7 (and the QR of step 10) for ``min x^T Q x + c^T x s.t. A x = b``.
 
         Raises
@@ -222,7 +235,7 @@ class EquilibratedKKT:
             Wrong shapes or precision.
         """
         steps = steps or EquilibrationSteps()
-        dtype = _dtype(precision)
+        dtype = scalar_type(precision)
         Q = np.asarray(Q, dtype=dtype)
         A = np.asarray(A, dtype=dtype)
         n = Q.shape[0]
@@ -292,13 +305,15 @@ class EquilibratedKKT:
 
     @property
     def dtype(self) -> type[np.floating[Any]]:
-        return _dtype(self.precision)
+        """The scalar type of the working precision."""
+        return scalar_type(self.precision)
 
     def schur_factorised(self) -> np.ndarray:
         """The matrix that was handed to Cholesky: ``E S E + delta I``."""
         m = self.schur_scaled.shape[0]
-        return self.schur_scaled + self.dtype(self.ridge_used) * np.eye(m,
-                                                                             dtype=self.dtype)
+        ridge = self.dtype(self.ridge_used) * np.eye(m, dtype=self.dtype)
+        factorised: np.ndarray = self.schur_scaled + ridge
+        return factorised
 
     def solve(self, c: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Steps 8-11 for linear term ``c`` and right-hand side ``b``.
@@ -411,7 +426,8 @@ def raw_schur(Q: np.ndarray, A: np.ndarray) -> np.ndarray:
     A = np.asarray(A, dtype=np.float64)
     try:
         factor = scipy.linalg.cho_factor(Q, lower=True)
-        return A @ scipy.linalg.cho_solve(factor, A.T)
+        schur: np.ndarray = A @ scipy.linalg.cho_solve(factor, A.T)
+        return schur
     except np.linalg.LinAlgError:
         return np.full((A.shape[0], A.shape[0]), np.inf)
 
@@ -457,7 +473,8 @@ def diagnose(kkt: EquilibratedKKT, Q: np.ndarray, A: np.ndarray, b: np.ndarray,
 
 
 def solve_equality_qp(Q: np.ndarray, c: np.ndarray, A: np.ndarray, b: np.ndarray,
-                      steps: EquilibrationSteps | None = None, precision: str = "float64",
+                      steps: EquilibrationSteps | None = None,
+                      precision: str = Precision.FLOAT64,
                       diagnostics: bool = True) -> EquilibratedSolution:
     """Solve ``min x^T Q x + c^T x s.t. A x = b`` by the 11 steps (module docstring).
 
@@ -486,75 +503,3 @@ def solve_equality_qp(Q: np.ndarray, c: np.ndarray, A: np.ndarray, b: np.ndarray
     if diagnostics:
         solution.diagnostics = diagnose(kkt, Q, A, b, solution.x, solution.x_unprojected)
     return solution
-
-
-def conditioning_table(problems: Iterable[Any],
-                       precisions: tuple[str, ...] = ("float64", "float32"),
-                       ablations: Mapping[str, EquilibrationSteps] | None = None
-                       ) -> list[dict[str, Any]]:
-    """Per-instance conditioning and violation figures of the method, for reports.
-
-    Parameters
-    ----------
-    problems
-        Equality-constrained QP instances (``Problem`` with ``A``, ``b``; ``G`` and bounds are
-        ignored), e.g. the ``c3plus_qp`` and ``c3_qp`` instances of a suite.
-    precisions
-        Precisions in which the full method is run for the violation columns.
-    ablations
-        Extra named step sets (e.g. :data:`ABLATIONS`) whose ``cond`` of the factorised matrix
-        (float64) is added as column ``cond_schur_<name>`` (``inf`` when it cannot be built).
-
-    Returns
-    -------
-    list of dict
-        One row per instance: ``name``, ``family``, ``state_index``, ``admm_iteration``,
-        ``rho_lam``; ``cond_schur_raw`` (``A Q^-1 A^T``), ``cond_schur_scaled`` (after steps
-        1-6) and ``cond_schur_equilibrated`` (the factorised matrix, with the ridge), all of the
-        float64 run; and per precision ``p``: ``violation_max_before_<p>``,
-        ``violation_mean_before_<p>``, ``violation_max_after_<p>``,
-        ``violation_mean_after_<p>`` (``|A x - b|`` before and after the projection) and
-        ``error_<p>`` (the failure text, ``""`` when the solve ran).
-    """
-    rows: list[dict[str, Any]] = []
-    for problem in problems:
-        if problem.A is None or problem.b is None:
-            raise ValueError(f"{problem.name}: conditioning_table needs equality constraints")
-        Q = problem.P / 2.0
-        rho = problem.meta.get("rho", {})
-        cond_raw = condition_number(raw_schur(Q, problem.A))
-        row: dict[str, Any] = {
-            "name": problem.name, "family": problem.family,
-            "state_index": problem.meta.get("state_index"),
-            "admm_iteration": problem.meta.get("admm_iteration"),
-            "rho_lam": float(rho.get("lam", math.nan)) if isinstance(rho, dict) else math.nan,
-            "cond_schur_raw": cond_raw,
-            "cond_schur_scaled": math.nan,
-            "cond_schur_equilibrated": math.nan,
-        }
-        for precision in precisions:
-            row[f"error_{precision}"] = ""
-            for key in ("max_before", "mean_before", "max_after", "mean_after"):
-                row[f"violation_{key}_{precision}"] = math.nan
-            try:
-                kkt = EquilibratedKKT.factorize(Q, problem.A, EquilibrationSteps(), precision)
-                x, _, x_unprojected = kkt.solve(problem.q, problem.b)
-            except ValueError as error:  # NotPositiveDefiniteError included
-                row[f"error_{precision}"] = str(error)
-                continue
-            found = diagnose(kkt, Q, problem.A, problem.b, x, x_unprojected, cond_raw)
-            row[f"violation_max_before_{precision}"] = found.violation_before_projection
-            row[f"violation_mean_before_{precision}"] = found.mean_violation_before_projection
-            row[f"violation_max_after_{precision}"] = found.violation_after_projection
-            row[f"violation_mean_after_{precision}"] = found.mean_violation_after_projection
-            if precision == "float64":
-                row["cond_schur_scaled"] = found.cond_schur_scaled
-                row["cond_schur_equilibrated"] = found.cond_schur_equilibrated
-        for label, steps in (ablations or {}).items():
-            try:
-                kkt = EquilibratedKKT.factorize(Q, problem.A, steps, "float64")
-                row[f"cond_schur_{label}"] = condition_number(kkt.schur_factorised())
-            except ValueError:
-                row[f"cond_schur_{label}"] = math.inf
-        rows.append(row)
-    return rows

@@ -93,12 +93,14 @@ identical samples both reduce to the nominal controller (tested), and with ``n =
 exactly :func:`solvers.c3.solve_c3`'s C3+ (tested against a high-accuracy QP backend).
 With ``shared_inputs=False`` the samples are ``n`` independent C3+ problems (shared ``rho``).
 
-**Registry backend** ``c3plus_riccati`` (:class:`RiccatiBackend`, families ``c3plus_qp``,
-float64 and float32): reads the per-step blocks of ``P`` and ``q`` (rejects a ``P`` that is
-not block diagonal in time), the LCS and ``x0``, checks that ``A z = b`` is the LCS's
-structure, solves, and returns the equality duals from the stationarity conditions of the
-``x``, ``eta`` columns, by a backward recursion in float64 (``y_eta_k = -(P z + q)_{eta_k}``,
-``y_{T-1} = -(P z + q)_{x_T}``, ``y_{k-1} = -(P z + q)_{x_k} + A^T y_k + E^T y_eta_k``,
+**Registry backend** ``c3plus_riccati``
+(:class:`c3bench.solvers.backends.c3plus_riccati.RiccatiBackend`, family ``c3plus_qp``,
+float64 and float32; :func:`solve_c3plus_qp` here): reads the per-step blocks of ``P`` and
+``q`` (rejects a ``P`` that is not block diagonal in time), the LCS and ``x0``, checks that
+``A z = b`` is the LCS's structure, solves, and returns the equality duals from the
+stationarity conditions of the ``x``, ``eta`` columns, by a backward recursion in float64
+(``y_eta_k = -(P z + q)_{eta_k}``, ``y_{T-1} = -(P z + q)_{x_T}``,
+``y_{k-1} = -(P z + q)_{x_k} + A^T y_k + E^T y_eta_k``,
 ``y_x0 = -(P z + q)_{x_0} + A^T y_0 + E^T y_eta_0``), so the dual residual measures the
 ``lam``, ``u`` rows, where the solve's own error shows.
 """
@@ -116,15 +118,10 @@ import numpy as np
 
 from c3bench.problems.families import dynamics_rows
 from c3bench.problems.instance import Problem
-from c3bench.problems.lcs_batch import LCSBatch
+from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC, HorizonLayout
-from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.problems.names import BLOCKS, Block, Precision, Variant
 from c3bench.solvers.c3 import C3Options, rho_multiplier
-from c3bench.solvers.registry import register
-from c3bench.solvers.timing import Stopwatch
-
-DTYPES: dict[str, type[np.floating[Any]]] = {"float64": np.float64, "float32": np.float32}
-RHO_KEYS: tuple[str, ...] = ("x", "lam", "u", "eta")
 
 
 # --- options, factor, cache -------------------------------------------------------------------
@@ -147,22 +144,23 @@ class RiccatiOptions:
         the forward pass already is a rollout).
     """
 
-    precision: str = "float64"
+    precision: str = Precision.FLOAT64
     jacobi: bool = True
     ridge: float = 0.0
     symmetrize: bool = True
     rollout: bool = False
 
     def __post_init__(self) -> None:
-        if self.precision not in DTYPES:
-            raise ValueError(f"precision must be one of {tuple(DTYPES)}, got "
+        if self.precision not in tuple(Precision):
+            raise ValueError(f"precision must be one of {tuple(map(str, Precision))}, got "
                              f"{self.precision!r}")
         if not (math.isfinite(self.ridge) and self.ridge >= 0):
             raise ValueError(f"ridge must be a finite number >= 0, got {self.ridge!r}")
 
     @property
     def dtype(self) -> type[np.floating[Any]]:
-        return DTYPES[self.precision]
+        """The scalar type of ``precision``."""
+        return Precision(self.precision).dtype.type
 
     def key(self) -> tuple[Hashable, ...]:
         return (self.precision, self.jacobi, self.ridge, self.symmetrize)
@@ -596,67 +594,6 @@ def solve_c3plus_qp(problem: Problem, options: RiccatiOptions | None = None
     return z, equality_duals(problem, z)
 
 
-class RiccatiBackend(Backend):
-    """The C3+ QP step by eta elimination and a Riccati recursion (module docstring).
-
-    ``settings.options`` may set ``jacobi``, ``ridge``, ``symmetrize`` and ``rollout``
-    (:class:`RiccatiOptions`); ``settings.precision`` picks float64 or float32.
-    """
-
-    name = "c3plus_riccati"
-    families = ("c3plus_qp",)
-    package = ""
-    precisions = ("float64", "float32")
-    description = ("C3+ QP step: eta eliminated, Riccati recursion + rollout (structure "
-                   "exploiting, batched core)")
-
-    def accepts(self, problem: Problem) -> tuple[bool, str]:
-        ok, reason = super().accepts(problem)
-        if not ok:
-            return ok, reason
-        if problem.lcs is None:
-            return False, "needs the LCS attached to the instance"
-        if "layout" not in problem.meta:
-            return False, "needs meta['layout']"
-        if problem.G is not None:
-            return False, "takes no inequality rows"
-        for bound in (problem.lb, problem.ub):
-            if bound is not None and np.any(np.isfinite(bound)):
-                return False, "takes no finite bounds (input_bounds must be off)"
-        layout = HorizonLayout.from_json(problem.meta["layout"])
-        if layout.n_eta != layout.nlam or layout.size != problem.n:
-            return False, "layout is not the C3+ layout of this instance"
-        return True, ""
-
-    def solve(self, problem: Problem, settings: Settings,
-              warm_start: WarmStart | None = None) -> Result:
-        watch = Stopwatch()
-        known = {"jacobi", "ridge", "symmetrize", "rollout"}
-        extra = {k: v for k, v in settings.options.items() if k in known}
-        options = RiccatiOptions(precision=settings.precision, **extra)
-        try:
-            with watch.lap("build"):
-                structured = structure_of(problem)
-            with watch.lap("solve"):
-                z = solve_structured(structured, options)
-                y = equality_duals(problem, z)
-        except ValueError as error:
-            return Result.failed(self.name, problem.name, "unsupported", str(error))
-        except np.linalg.LinAlgError as error:
-            return Result.failed(self.name, problem.name, "error",
-                                 f"singular Q_vv in the Riccati recursion: {error}")
-        finite = bool(np.all(np.isfinite(z)))
-        return Result(solver=self.name, problem=problem.name, found=finite,
-                      status="solved (Riccati)" if finite else "non-finite solution",
-                      x=z, y=y if finite else None, iterations=1,
-                      build_time=watch.get("build"), solve_time=watch.get("solve"),
-                      objective=problem.objective(z) if finite else None,
-                      failure="" if finite else "non_finite")
-
-
-register(RiccatiBackend())
-
-
 # --- batched C3+ ADMM -------------------------------------------------------------------------
 def project_c3plus_batch(v: np.ndarray, nx: int, nlam: int, nu: int, rho_lam: float,
                          rho_eta: float) -> np.ndarray:
@@ -791,7 +728,7 @@ class FastC3Plus:
                  cache: FactorCache | None = None, record_residuals: bool = False,
                  prefactorize: bool = True, chunk_bytes: int = 64 * 2**20) -> None:
         options = options or C3Options(keep_iterates=False)
-        if options.variant != "c3plus":
+        if options.variant != Variant.C3PLUS:
             raise ValueError("FastC3Plus runs the c3plus variant only")
         if options.input_bounds:
             raise ValueError("FastC3Plus does not take input bounds in the QP step")
@@ -835,7 +772,7 @@ class FastC3Plus:
 
     def factor_key(self, lcs: LCSBatch, rho: Mapping[str, float]) -> tuple[Hashable, ...]:
         """Cache key: LCS identity, the four rho values, the horizon and the options."""
-        return (lcs.uid, *(float(rho[key]) for key in RHO_KEYS), self.mpc.horizon,
+        return (lcs.uid, *(float(rho[key]) for key in BLOCKS), self.mpc.horizon,
                 id(self.mpc), *self.riccati.key())
 
     def stage_hessian(self, prepared: _Prepared, rho: Mapping[str, float]) -> np.ndarray:
@@ -843,10 +780,10 @@ class FastC3Plus:
         nx, nlam, nu = self.nx, prepared.M.shape[1], self.nu
         ny = nx + nlam + nu
         base = np.zeros((ny, ny))
-        base[:nx, :nx] = self._Q2 + 2 * rho["x"] * np.eye(nx)
-        base[nx:nx + nlam, nx:nx + nlam] = 2 * rho["lam"] * np.eye(nlam)
-        base[nx + nlam:, nx + nlam:] = self._R2 + 2 * rho["u"] * np.eye(nu)
-        Hy = prepared.MtM * (2 * rho["eta"])
+        base[:nx, :nx] = self._Q2 + 2 * rho[Block.X] * np.eye(nx)
+        base[nx:nx + nlam, nx:nx + nlam] = 2 * rho[Block.LAM] * np.eye(nlam)
+        base[nx + nlam:, nx + nlam:] = self._R2 + 2 * rho[Block.U] * np.eye(nu)
+        Hy = prepared.MtM * (2 * rho[Block.ETA])
         Hy += base.astype(self.riccati.dtype)
         return Hy
 
@@ -921,7 +858,7 @@ class FastC3Plus:
         gy = anchor[:, :, :ny] * g2
         gy[:, :, :nx] += self._gx
         eta_term = prepared.c[:, None, :] - anchor[:, :, ny:]
-        gy += (prepared.MT @ eta_term[..., None])[..., 0] * (2 * rho["eta"])
+        gy += (prepared.MT @ eta_term[..., None])[..., 0] * (2 * rho[Block.ETA])
         xs, vs = solve_lq(factor, x0, gy, np.broadcast_to(self._gT, (gy.shape[0], nx)))
         ys = np.concatenate([xs[:, :-1], vs], axis=2)  # (n, T, ny)
         eta = (prepared.M[:, None] @ ys[..., None])[..., 0]
@@ -930,14 +867,14 @@ class FastC3Plus:
 
     def _g2(self, rho: Mapping[str, float], ny: int, nlam: int) -> np.ndarray:
         """``-2 G_y`` as a (ny,) vector in the working precision (memoised)."""
-        key = ("g2", ny, nlam, rho["x"], rho["lam"], rho["u"])
+        key = ("g2", ny, nlam, rho[Block.X], rho[Block.LAM], rho[Block.U])
         out = self._vectors.get(key)
         if out is None:
             nx = self.nx
             out = np.empty(ny, dtype=self.riccati.dtype)
-            out[:nx] = -2 * rho["x"]
-            out[nx:nx + nlam] = -2 * rho["lam"]
-            out[nx + nlam:] = -2 * rho["u"]
+            out[:nx] = -2 * rho[Block.X]
+            out[nx:nx + nlam] = -2 * rho[Block.LAM]
+            out[nx + nlam:] = -2 * rho[Block.U]
             self._vectors[key] = out
         return out
 
@@ -1029,7 +966,7 @@ class FastC3Plus:
                 status, ok = f"non-finite QP solution at iteration {i}", False
                 break
             v = steps_i + w
-            new_delta = project_c3plus_batch(v, nx, nlam, nu, rho["lam"], rho["eta"])
+            new_delta = project_c3plus_batch(v, nx, nlam, nu, rho[Block.LAM], rho[Block.ETA])
             if self.shared_inputs and n > 1:
                 new_delta[:, :, u_s] = np.tensordot(p_work, v[:, :, u_s], axes=(0, 0))
             timings.projection += time.perf_counter() - t2
@@ -1097,7 +1034,8 @@ class FastC3Plus:
             raise ValueError("weights must be finite, >= 0 and not all zero")
         array = array / array.sum()
         array = np.maximum(array, 1e-6 * array.max())
-        return array / array.sum()
+        normalised: np.ndarray = array / array.sum()
+        return normalised
 
     def _initial(self, name: str, given: np.ndarray, cold: np.ndarray) -> np.ndarray:
         array = np.asarray(given)
@@ -1112,7 +1050,7 @@ class FastC3Plus:
 
     def _weight_vector(self, layout: HorizonLayout, rho: Mapping[str, float]) -> np.ndarray:
         """``diag G`` of one step (float64, memoised)."""
-        key = ("G", *layout.block_sizes().items(), *(float(rho[k]) for k in RHO_KEYS))
+        key = ("G", *layout.block_sizes().items(), *(float(rho[k]) for k in BLOCKS))
         out = self._vectors.get(key)
         if out is None:
             out = np.concatenate([np.full(size, float(rho[name]))

@@ -48,12 +48,11 @@ from typing import Any
 import numpy as np
 
 from c3bench.problems.errors import BackendUnavailable
-from c3bench.problems.lcs_batch import LCSBatch
+from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC
+from c3bench.problems.names import Precision, Variant
 from c3bench.solvers.c3 import C3Options
 from c3bench.solvers.fast import FastSolution, FastTimings
-
-DTYPES: tuple[str, ...] = ("float64", "float32")
 
 
 class JaxUnavailable(BackendUnavailable):
@@ -69,7 +68,8 @@ def jax_modules() -> tuple[Any, Any, Any]:
     except ImportError as error:  # pragma: no cover - depends on the install
         raise JaxUnavailable(f"JAX is not installed ({error}); pip install 'c3bench[jax]'"
                              ) from error
-    jax.config.update("jax_enable_x64", True)
+    # jax.config.update is untyped in jax's stubs
+    jax.config.update("jax_enable_x64", True)  # type: ignore[no-untyped-call]
     return jax, jnp, lax
 
 
@@ -184,20 +184,22 @@ class JaxC3Plus:
         ``T``: straight-line code).
     """
 
-    def __init__(self, mpc: MPC, options: C3Options | None = None, precision: str = "float64",
+    def __init__(self, mpc: MPC, options: C3Options | None = None,
+                 precision: str = Precision.FLOAT64,
                  shared_inputs: bool = True, jacobi: bool = True, ridge: float = 0.0,
                  symmetrize: bool = True, rollout: bool = False, device: str = "cpu",
                  unroll: int = 1) -> None:
         jax, _, _ = jax_modules()
         options = options or C3Options(keep_iterates=False)
-        if options.variant != "c3plus":
+        if options.variant != Variant.C3PLUS:
             raise ValueError("JaxC3Plus runs the c3plus variant only")
         if options.input_bounds:
             raise ValueError("JaxC3Plus does not take input bounds")
         if options.stopping != "fixed":
             raise ValueError("JaxC3Plus runs a fixed number of iterations (stopping='fixed')")
-        if precision not in DTYPES:
-            raise ValueError(f"precision must be one of {DTYPES}, got {precision!r}")
+        if precision not in tuple(Precision):
+            raise ValueError(f"precision must be one of {tuple(map(str, Precision))}, got "
+                             f"{precision!r}")
         if device not in ("cpu", "gpu"):
             raise ValueError(f"device must be 'cpu' or 'gpu', got {device!r}")
         if device == "gpu" and not gpu_available():
@@ -207,7 +209,7 @@ class JaxC3Plus:
         self.mpc = mpc
         self.options = options
         self.precision = precision
-        self.dtype = np.float64 if precision == "float64" else np.float32
+        self.dtype = Precision(precision).dtype.type
         self.shared_inputs = shared_inputs
         self.jacobi = jacobi
         self.ridge = float(ridge)
@@ -392,7 +394,8 @@ class JaxC3Plus:
             return (u_raw, jnp.clip(u_raw, -limit, limit), delta, w, z, terminal, rho_used,
                     consensus, dual, finite)
 
-        return jax.jit(step)
+        compiled: Callable[..., Any] = jax.jit(step)
+        return compiled
 
     def compiled(self, n: int, nx: int, nlam: int, nu: int) -> Callable[..., Any]:
         """The compiled step for these sizes (built and cached on first use)."""
@@ -458,4 +461,5 @@ def _weights(weights: Sequence[float] | None, n: int) -> np.ndarray:
         raise ValueError(f"weights must be {n} finite values >= 0, not all zero")
     array = array / array.sum()
     array = np.maximum(array, 1e-6 * array.max())
-    return array / array.sum()
+    normalised: np.ndarray = array / array.sum()
+    return normalised

@@ -1,6 +1,15 @@
 """Pivoting and iterative solvers of the linear complementarity problem.
 
-``LCP(M, q)``: find ``z >= 0`` with ``w = M z + q >= 0`` and ``z^T w = 0``.
+``LCP(M, q)``: find ``z >= 0`` with ``w = M z + q >= 0`` and ``z^T w = 0``. The registry
+backends ``lemke`` and ``pgs`` are :mod:`c3bench.solvers.backends.lcp`.
+
+References
+----------
+C. E. Lemke, "Bimatrix equilibrium points and mathematical programming", Management Science
+11(7), 681-689, 1965 (:func:`lemke`).
+
+R. W. Cottle, J.-S. Pang and R. E. Stone, *The Linear Complementarity Problem*, Academic
+Press, 1992 (:func:`projected_gauss_seidel`, chapter 5).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""C3+'s closed-form projection onto complementarity, and its registry backend.
+"""C3+'s closed-form projection onto complementarity (the maths; the registry backend
+``c3plus_closed_form`` is :mod:`c3bench.solvers.backends.c3plus_closed_form`).
 
 For one pair, with weights ``w_lam, w_eta >= 0`` and a point ``(a, b) = (v_lam, v_eta)``:
 
@@ -19,17 +20,20 @@ weighted positive parts, both branches optimal) deterministically keep ``lam``. 
 
 C3+'s projection ``min ||delta - v||^2_U`` with diagonal ``U`` and no coupling between
 ``eta`` and ``(x, lam, u)`` is separable: ``x = v_x``, ``u = v_u``, and every pair takes the
-closed form above.
+closed form above (Bui et al. 2025).
+
+References
+----------
+W. Aydinoglu and M. Posa, "Real-time multi-contact model predictive control via ADMM",
+IEEE International Conference on Robotics and Automation (ICRA), 2022 (C3).
+
+Bui et al., 2025: C3+, the separable variant with the slack ``eta`` (the method of the
+reference study c3bench reproduces).
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-from c3bench.problems.instance import Problem
-from c3bench.solvers.base import Backend, Result, Settings, WarmStart
-from c3bench.solvers.registry import register
-from c3bench.solvers.timing import Stopwatch
 
 
 def c3plus_projection(v_lam: np.ndarray, v_eta: np.ndarray, w_lam: np.ndarray | float,
@@ -73,90 +77,3 @@ def c3plus_projection(v_lam: np.ndarray, v_eta: np.ndarray, w_lam: np.ndarray | 
     lam = np.where(keep_lam, a_plus, zero)
     eta = np.where(keep_lam, zero, b_plus)
     return lam, eta
-
-
-def _separable_data(problem: Problem) -> tuple[np.ndarray, np.ndarray, str]:
-    """Weights ``w = diag(P)/2`` and targets ``v`` of a separable projection, or a reason.
-
-    ``1/2 P_ii z_i^2 + q_i z_i = w_i (z_i - v_i)^2 + const`` with ``w_i = P_ii / 2`` and
-    ``v_i = -q_i / P_ii``; where ``P_ii = 0`` the target is taken from ``data["v"]`` (any
-    value is optimal there when also ``q_i = 0``).
-    """
-    n = problem.n
-    diagonal = np.diag(problem.P).copy()
-    if np.max(np.abs(problem.P - np.diag(diagonal)), initial=0.0) > 0:
-        return np.zeros(0), np.zeros(0), "P is not diagonal"
-    positive = diagonal > 0
-    if np.any(~positive & (problem.q != 0)):
-        return np.zeros(0), np.zeros(0), "linear term on a variable with zero weight"
-    target = np.zeros(n)
-    if "v" in problem.data and np.shape(problem.data["v"]) == (n,):
-        target = np.asarray(problem.data["v"], dtype=float).copy()
-    target[positive] = -problem.q[positive] / diagonal[positive]
-    return diagonal / 2.0, target, ""
-
-
-class C3PlusClosedForm(Backend):
-    """C3+'s projection in closed form (no iterations): exact for the ``c3plus`` variant."""
-
-    name = "c3plus_closed_form"
-    families = ("projection",)
-    package = ""
-    precisions = ("float64", "float32")
-    description = "C3+ closed-form projection: keep the larger of sqrt(w) [v]_+ per pair"
-
-    def accepts(self, problem: Problem) -> tuple[bool, str]:
-        ok, reason = super().accepts(problem)
-        if not ok:
-            return ok, reason
-        variant = problem.meta.get("variant")
-        if variant != "c3plus":
-            return False, (f"the closed form needs the separable c3plus variant; variant "
-                           f"{variant!r} couples eta = E x + F lam + H u + c (use an MIQP "
-                           "backend)")
-        if problem.A is not None or problem.G is not None:
-            return False, "the closed form takes no equality or inequality rows"
-        pairs = problem.complementarity
-        if pairs is None or pairs.size == 0:
-            return False, "no complementarity pairs"
-        members = pairs.ravel()
-        if len(set(members.tolist())) != members.size:
-            return False, "a variable belongs to two pairs"
-        lb = problem.lb if problem.lb is not None else np.full(problem.n, -np.inf)
-        ub = problem.ub if problem.ub is not None else np.full(problem.n, np.inf)
-        free = np.ones(problem.n, dtype=bool)
-        free[members] = False
-        if np.any(np.isfinite(lb[free])) or np.any(np.isfinite(ub[free])):
-            return False, "variables outside the pairs must be unbounded"
-        if np.any(lb[members] != 0) or np.any(np.isfinite(ub[members])):
-            return False, "pair members must have bounds [0, inf)"
-        _, _, reason = _separable_data(problem)
-        if reason:
-            return False, reason
-        return True, ""
-
-    def solve(self, problem: Problem, settings: Settings,
-              warm_start: WarmStart | None = None) -> Result:
-        watch = Stopwatch()
-        with watch.lap("build"):
-            weights, target, reason = _separable_data(problem)
-            if reason:
-                return Result.failed(self.name, problem.name, "unsupported", reason)
-            pairs = problem.complementarity
-            dtype = np.float32 if settings.precision == "float32" else np.float64
-            weights = weights.astype(dtype)
-            target = target.astype(dtype)
-        with watch.lap("solve"):
-            x = target.copy()
-            lam, eta = c3plus_projection(target[pairs[:, 0]], target[pairs[:, 1]],
-                                         weights[pairs[:, 0]], weights[pairs[:, 1]])
-            x[pairs[:, 0]] = lam
-            x[pairs[:, 1]] = eta
-        x64 = x.astype(np.float64)
-        return Result(solver=self.name, problem=problem.name, found=True,
-                      status="solved (closed form)", x=x64, iterations=0,
-                      build_time=watch.get("build"), solve_time=watch.get("solve"),
-                      objective=problem.objective(x64))
-
-
-register(C3PlusClosedForm())

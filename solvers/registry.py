@@ -1,17 +1,26 @@
 """Registry of solver backends and the guarded ``solve`` every caller goes through.
 
+Backends are found, not listed: every module of :mod:`c3bench.solvers.backends` is imported
+once, on first use (:func:`backend_modules`; modules whose name starts with ``_`` are helpers
+and skipped), and registers its backends on import with :func:`register`. A module that fails
+to import is recorded (:func:`module_errors`), never raised. Plugins outside the package
+register the same way (:func:`import_plugins`).
+
 ``solve`` is where robustness lives, once for all backends: it validates the instance (finite
 data, symmetric positive semi-definite ``P``), checks that the backend is installed and takes
 the family and precision, runs the backend in a forked child process under a wall-clock limit
 (killed when it overruns), turns any exception or crash into a recorded failure, and rejects
-non-finite answers. Warm-up and repeats happen inside the same child, with BLAS pinned to one
-thread, so timings exclude process start and first-call costs.
+non-finite answers. A backend that raises
+:class:`~c3bench.problems.errors.BackendUnavailable` (from ``require`` or while solving) is a
+``Failure.UNAVAILABLE`` row. Warm-up and repeats happen inside the same child, with BLAS
+pinned to one thread, so timings exclude process start and first-call costs.
 """
 
 from __future__ import annotations
 
 import importlib
 import multiprocessing
+import pkgutil
 import statistics
 import threading
 import time
@@ -22,21 +31,14 @@ from typing import Any
 
 import numpy as np
 
+from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.instance import Problem
+from c3bench.problems.names import Failure, Family, Precision
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.timing import single_thread_blas
 
-# Modules that define backends; each registers its backends on import.
-BACKEND_MODULES: tuple[str, ...] = (
-    "c3bench.solvers.backends.qp",
-    "c3bench.solvers.backends.kkt",
-    "c3bench.solvers.backends.lcp",
-    "c3bench.solvers.projection",
-    "c3bench.solvers.backends.miqp",
-    "c3bench.solvers.backends.nlp",
-    "c3bench.solvers.backends.c3",
-    "c3bench.solvers.fast",
-)
+BACKEND_PACKAGE = "c3bench.solvers.backends"
+"""The package whose modules define the backends (each registers its own on import)."""
 
 _BACKENDS: dict[str, Backend] = {}
 _MODULE_ERRORS: dict[str, str] = {}
@@ -53,18 +55,23 @@ def register(backend: Backend) -> Backend:
     return backend
 
 
+def backend_modules() -> tuple[str, ...]:
+    """Every module of :data:`BACKEND_PACKAGE` (sorted; names starting with ``_`` skipped)."""
+    package = importlib.import_module(BACKEND_PACKAGE)
+    return tuple(f"{BACKEND_PACKAGE}.{info.name}"
+                 for info in sorted(pkgutil.iter_modules(package.__path__),
+                                    key=lambda info: info.name)
+                 if not info.name.startswith("_"))
+
+
 def _load() -> None:
     global _LOADED
     if _LOADED:
         return
     _LOADED = True
-    for module in BACKEND_MODULES:
+    for module in backend_modules():
         try:
             importlib.import_module(module)
-        except ModuleNotFoundError as error:
-            if error.name == module:
-                continue  # that group of backends is not part of this checkout yet
-            _MODULE_ERRORS[module] = f"{type(error).__name__}: {error}"
         except Exception as error:  # noqa: BLE001 - recorded, never raised
             _MODULE_ERRORS[module] = f"{type(error).__name__}: {error}"
 
@@ -91,13 +98,15 @@ class BackendInfo:
     available: bool
     reason: str
     version: str
-    families: tuple[str, ...]
-    precisions: tuple[str, ...]
+    families: tuple[Family, ...]
+    precisions: tuple[Precision, ...]
     description: str
 
 
 def available() -> list[BackendInfo]:
-    """Every backend with availability, version and accepted families."""
+    """Every backend with availability (the reason of a
+    :class:`~c3bench.problems.errors.BackendUnavailable` when not), version and accepted
+    families."""
     rows = []
     for name, backend in backends().items():
         ok, reason = backend.availability()
@@ -140,12 +149,12 @@ def _finish(result: Result, problem: Problem) -> Result:
     """Reject non-finite answers and fill the objective."""
     if result.found:
         if result.x is None or np.shape(result.x) != (problem.n,):
-            return Result.failed(result.solver, problem.name, "non_finite",
+            return Result.failed(result.solver, problem.name, Failure.NON_FINITE,
                                  f"solver reported success but returned no solution of "
                                  f"size {problem.n}", iterations=result.iterations,
                                  build_time=result.build_time, solve_time=result.solve_time)
         if not np.all(np.isfinite(result.x)):
-            return Result.failed(result.solver, problem.name, "non_finite",
+            return Result.failed(result.solver, problem.name, Failure.NON_FINITE,
                                  "solver returned a non-finite solution",
                                  iterations=result.iterations, build_time=result.build_time,
                                  solve_time=result.solve_time, x=np.asarray(result.x))
@@ -239,16 +248,16 @@ def _isolated(call: Call, time_limit: float, solver: str, problem: str) -> Resul
         if process.is_alive():
             process.kill()
         process.join(5)
-    if kind == "ok":
+    if kind == "ok" and isinstance(payload, Result):
         return payload
     if kind == "timeout":
-        return Result.failed(solver, problem, "timeout",
+        return Result.failed(solver, problem, Failure.TIMEOUT,
                              f"time limit of {time_limit:g} s exceeded; process killed",
                              solve_time=time_limit)
     if kind == "crash":
-        return Result.failed(solver, problem, "error",
+        return Result.failed(solver, problem, Failure.ERROR,
                              f"solver process died (exit code {process.exitcode})")
-    return Result.failed(solver, problem, "error", str(payload).strip())
+    return Result.failed(solver, problem, Failure.ERROR, str(payload).strip())
 
 
 def _threaded(call: Call, time_limit: float, solver: str, problem: str) -> Result:
@@ -265,12 +274,14 @@ def _threaded(call: Call, time_limit: float, solver: str, problem: str) -> Resul
     thread.start()
     thread.join(time_limit)
     if thread.is_alive():
-        return Result.failed(solver, problem, "timeout",
+        return Result.failed(solver, problem, Failure.TIMEOUT,
                              f"time limit of {time_limit:g} s exceeded (thread abandoned)",
                              solve_time=time_limit)
-    if "error" in box:
-        return Result.failed(solver, problem, "error", box["error"])
-    return box["result"]
+    result = box.get("result")
+    if not isinstance(result, Result):
+        return Result.failed(solver, problem, Failure.ERROR,
+                             str(box.get("error", "solver returned no Result")))
+    return result
 
 
 def solve(name: str, problem: Problem, settings: Settings | None = None,
@@ -304,22 +315,26 @@ def solve(name: str, problem: Problem, settings: Settings | None = None,
     try:
         backend = get(name)
     except KeyError as error:
-        return Result.failed(name, problem.name, "unavailable", str(error.args[0]))
+        return Result.failed(name, problem.name, Failure.UNAVAILABLE, str(error.args[0]))
     ok, reason = backend.availability()
     if not ok:
-        return Result.failed(name, problem.name, "unavailable", reason)
+        return Result.failed(name, problem.name, Failure.UNAVAILABLE, reason)
     accepted, reason = backend.accepts(problem)
     if not accepted:
-        return Result.failed(name, problem.name, "unsupported", reason)
+        return Result.failed(name, problem.name, Failure.UNSUPPORTED, reason)
     if settings.precision not in backend.precisions:
-        return Result.failed(name, problem.name, "unsupported",
+        return Result.failed(name, problem.name, Failure.UNSUPPORTED,
                              f"{name} does not run in {settings.precision}")
     reason = check_problem(problem) if check else ""
     if reason:
-        return Result.failed(name, problem.name, "invalid_input", reason)
+        return Result.failed(name, problem.name, Failure.INVALID_INPUT, reason)
 
     def call(notify: Notify | None) -> Result:
-        return _run_repeats(backend, problem, settings, warm_start, repeats, warmup, notify)
+        try:
+            return _run_repeats(backend, problem, settings, warm_start, repeats, warmup,
+                                notify)
+        except BackendUnavailable as error:  # found out only while solving (e.g. a licence)
+            return Result.failed(name, problem.name, Failure.UNAVAILABLE, str(error))
 
     if isolate:
         result = _isolated(call, settings.time_limit, name, problem.name)

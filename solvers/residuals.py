@@ -108,12 +108,12 @@ def _scales(problem: Problem, x: np.ndarray, y: np.ndarray | None, z: np.ndarray
     primal = [0.0]
     dual = [_inf_norm(problem.P @ x), _inf_norm(problem.q)]
     gap = [abs(float(x @ problem.P @ x)), abs(float(problem.q @ x))]
-    if problem.A is not None:
+    if problem.A is not None and problem.b is not None:
         y = _zeros_if_none(y, problem.n_eq)
         primal += [_inf_norm(problem.A @ x), _inf_norm(problem.b)]
         dual.append(_inf_norm(problem.A.T @ y))
         gap.append(abs(float(problem.b @ y)))
-    if problem.G is not None:
+    if problem.G is not None and problem.h is not None:
         z = _zeros_if_none(z, problem.n_ineq)
         primal += [_inf_norm(problem.G @ x), _inf_norm(problem.h)]
         dual.append(_inf_norm(problem.G.T @ z))

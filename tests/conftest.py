@@ -10,11 +10,10 @@ import pytest
 from c3bench.problems import families
 from c3bench.problems.config import load_config
 from c3bench.problems.instance import Problem, load_instances
-from c3bench.problems.lcs import linearize
-from c3bench.problems.mpc import build_mpc
-from c3bench.problems.scene import build_scene
+from c3bench.problems.linearize import linearize
+from c3bench.problems.scene import build_mpc, build_scene
 from c3bench.problems.suites import generate_suite, sample_states, scripted_push
-from c3bench.solvers.backends.miqp import enumerate_modes
+from c3bench.solvers.modes import enumerate_modes
 
 SMALL_MPCC_META = {"scene": "planar", "l": 0.29, "dt": 0.05, "T": 1, "seed": 0,
                    "precision": "float64"}

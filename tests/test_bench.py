@@ -10,7 +10,6 @@ fakes, so nothing here depends on the real backends.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import re
@@ -25,13 +24,18 @@ import pytest
 
 from c3bench.bench import reference as reference_module
 from c3bench.bench import runner, store
-from c3bench.bench.commands import register_commands
+from c3bench.bench.cli import main
 from c3bench.bench.compare import compare, compare_frame
+from c3bench.bench.executors import LocalPool
 from c3bench.bench.metrics import TIME_SHIFT, aggregate, judge, success_series
+from c3bench.bench.planning import Cell, predecessors
 from c3bench.bench.reference import ReferencePlan, load_references
 from c3bench.bench.report import write_report
+from c3bench.bench.rows import CellOutcome, run_cell
+from c3bench.problems.capture import SuiteSpec
+from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.instance import Problem
-from c3bench.problems.suites import SuiteSpec, generate_suite
+from c3bench.problems.suites import generate_suite
 from c3bench.solvers import registry
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.timing import Stopwatch
@@ -150,14 +154,14 @@ def register_fakes() -> None:
 FAKE_PLANS = {family: ReferencePlan("fake_kkt", "fake_lu") for family in QP}
 
 
-def dying_run_cell(cell: runner.Cell, *args: Any) -> runner.CellOutcome:
+def dying_run_cell(cell: Cell, *args: Any) -> CellOutcome:
     """``run_cell`` that kills its own worker process for ``fake_die`` cells."""
     if cell.solver == "fake_die":
         os._exit(7)
     return REAL_RUN_CELL(cell, *args)
 
 
-REAL_RUN_CELL = runner.run_cell
+REAL_RUN_CELL = run_cell
 
 
 def exit_task(code: int) -> int:
@@ -212,7 +216,7 @@ def resumed(tmp_path_factory: pytest.TempPathFactory, instances: Path) -> dict[s
     paths = store.SuitePaths.of(results, "tiny")
     seen: list[str] = []
 
-    def stop_after_five(outcome: runner.CellOutcome) -> None:
+    def stop_after_five(outcome: CellOutcome) -> None:
         seen.append(outcome.row["cell_id"])
         if len(seen) == 5:
             raise KeyboardInterrupt
@@ -390,7 +394,7 @@ def test_crash_hang_nan_and_dead_worker_cost_only_their_rows(
 
 
 def test_local_pool_survives_dead_and_stuck_workers() -> None:
-    pool = runner.LocalPool(2)
+    pool = LocalPool(2)
     tasks = [("a", square_task, (3,), 30.0), ("dead", exit_task, (5,), 30.0),
              ("b", square_task, (4,), 30.0), ("stuck", sleep_task, (60.0,), 1.0),
              ("c", square_task, (5,), 30.0)]
@@ -429,18 +433,37 @@ def test_other_schema_versions_are_rejected(resumed: dict[str, Any], tmp_path: P
     metadata = dict(table.schema.metadata)
     metadata[store.PARQUET_METADATA_KEY] = b"999"
     pq.write_table(table.replace_schema_metadata(metadata), tmp_path / "old.parquet")
-    with pytest.raises(store.SchemaVersionError, match="schema version 999"):
+    with pytest.raises(SchemaVersionError, match="schema version 999"):
         store.read_results(tmp_path / "old.parquet")
     csv = pd.read_csv(paths.csv)
     csv["schema_version"] = 0
     csv.to_csv(tmp_path / "old.csv", index=False)
-    with pytest.raises(store.SchemaVersionError, match="version 0"):
+    with pytest.raises(SchemaVersionError, match="version 0"):
         store.read_results(tmp_path / "old.csv")
     old = store.SuitePaths(tmp_path / "suite")
     row = store.read_cell(next(paths.cells.glob("*.json")))
     store.write_json(old.cells / "x.json", {**row, "schema_version": 0})
-    with pytest.raises(store.SchemaVersionError, match="--rerun"):
+    with pytest.raises(SchemaVersionError, match="--rerun"):
         store.read_cells(old)
+
+
+def test_perf_files_carry_the_one_schema_version(tmp_path: Path) -> None:
+    frame = pd.DataFrame([{name: 1 for name in store.PERF_COLUMNS}])
+    frame["schema_version"] = store.SCHEMA_VERSION
+    parquet, csv = store.write_perf(frame, tmp_path)
+    assert parquet.parent == store.perf_dir(tmp_path)
+    pd.testing.assert_frame_equal(store.read_perf(tmp_path), frame)
+    table = pq.read_table(parquet)
+    assert table.schema.metadata[store.PARQUET_METADATA_KEY] == str(
+        store.SCHEMA_VERSION).encode()
+    metadata = {**table.schema.metadata, store.PARQUET_METADATA_KEY: b"999"}
+    pq.write_table(table.replace_schema_metadata(metadata), parquet)
+    with pytest.raises(SchemaVersionError, match="schema version 999"):
+        store.read_perf(tmp_path)
+    parquet.unlink()
+    frame.assign(schema_version=0).to_csv(csv, index=False)
+    with pytest.raises(SchemaVersionError, match="version 0"):
+        store.read_perf(tmp_path)
 
 
 def test_rows_round_trip_with_missing_values(tmp_path: Path) -> None:
@@ -524,33 +547,32 @@ def test_compare_names_the_winners(resumed: dict[str, Any]) -> None:
 
 def test_commands(resumed: dict[str, Any], tmp_path: Path,
                   capsys: pytest.CaptureFixture[str]) -> None:
-    parser = argparse.ArgumentParser(prog="c3bench")
-    register_commands(parser.add_subparsers(dest="command", required=True))
     results = str(resumed["results"])
-    args = parser.parse_args(["compare", "fake_kkt", "fake_wrong", "--suite", "tiny",
-                              "--results", results])
-    assert args.handler(args) == 0
+    assert main(["compare", "fake_kkt", "fake_wrong", "--suite", "tiny",
+                 "--results", results]) == 0
     assert "fake_kkt" in capsys.readouterr().out
-    args = parser.parse_args(["report", "--suite", "tiny", "--results", results,
-                              "--no-figures"])
-    assert args.handler(args) == 0
-    args = parser.parse_args(["report", "--suite", "nothing", "--results", str(tmp_path)])
-    assert args.handler(args) == 1
-    args = parser.parse_args(["run", "--suite", "tiny", "--results", results, "--solvers",
-                              "fake_kkt,fake_wrong", "--families", "c3plus_qp", "c3_qp",
-                              "--repeats", "1", "--quiet", "--no-report"])
-    assert args.handler(args) == 0
+    assert main(["report", "--suite", "tiny", "--results", results, "--no-figures"]) == 0
+    assert main(["report", "--suite", "nothing", "--results", str(tmp_path)]) == 1
+    assert capsys.readouterr().err.startswith("error: ")
+    assert main(["compare", "fake_kkt", "nobody", "--suite", "tiny", "--results",
+                 results]) == 2
+    assert capsys.readouterr().err.startswith("error: solver 'nobody' has no results")
+    assert main(["run", "--suite", "tiny", "--results", results, "--solvers",
+                 "fake_kkt,fake_wrong", "--families", "c3plus_qp", "c3_qp",
+                 "--repeats", "1", "--quiet", "--no-report"]) == 0
     assert "25 already stored, 0 run" in capsys.readouterr().out
-    args = parser.parse_args(["run", "--suite", "tiny", "--results", results, "--solvers",
-                              "no_such_solver", "--quiet"])
-    assert args.handler(args) == 2
+    assert main(["run", "--suite", "tiny", "--results", results, "--solvers",
+                 "no_such_solver", "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error: unknown solver 'no_such_solver'")
+    assert "Traceback" not in error and error.count("\n") == 1
 
 
 def test_predecessors_follow_admm_sequences(instances: Path) -> None:
     from c3bench.problems.instance import load_instances
 
     problems = load_instances(instances)
-    previous = runner.predecessors(problems)
+    previous = predecessors(problems)
     by_name = {p.name: p for p in problems}
     # iterations 1 and 2 of both QP families; the projection has only iteration 0
     assert len(previous) == 4

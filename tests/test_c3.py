@@ -1,4 +1,4 @@
-"""Tests of the C3 / C3+ controller (solvers/c3.py) and its mpcc adapters (solvers/backends/c3.py).
+"""Tests of the C3 / C3+ controller (solvers/c3.py) and its mpcc adapters (backends/c3_admm.py).
 
 The small instances are built as ``problems/suites.py`` builds them (scripted push of the true
 cube, states sampled in the contact band, controller model ``l = 0.29``), with horizon 2 so that
@@ -15,23 +15,18 @@ import numpy as np
 import pytest
 
 from c3bench.problems import families
+from c3bench.problems.capture import CaptureContext, SuiteSpec, seed_rho
 from c3bench.problems.config import load_config
 from c3bench.problems.instance import Problem
-from c3bench.problems.lcs import LCS, linearize
-from c3bench.problems.mpc import MPC, build_mpc
-from c3bench.problems.scene import build_scene
-from c3bench.problems.suites import (
-    CaptureContext,
-    SuiteSpec,
-    build_state_instances,
-    sample_states,
-    scripted_push,
-    seed_rho,
-)
+from c3bench.problems.lcs import LCS
+from c3bench.problems.linearize import linearize
+from c3bench.problems.mpc import MPC
+from c3bench.problems.names import REFERENCE_RHO0
+from c3bench.problems.scene import build_mpc, build_scene
+from c3bench.problems.suites import build_state_instances, sample_states, scripted_push
 from c3bench.solvers import registry
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart, settings_for
 from c3bench.solvers.c3 import (
-    SEED_RHO0,
     C3Controller,
     C3Options,
     C3Solution,
@@ -120,7 +115,7 @@ COST_FACTOR_ROLLOUT = 1.6
 
 @pytest.mark.parametrize("which", [0, 1])
 def test_c3plus_cost_within_factor_of_miqp_optimum(small: SimpleNamespace, which: int) -> None:
-    miqp = pytest.importorskip("c3bench.solvers.backends.miqp")
+    miqp = pytest.importorskip("c3bench.solvers.modes")
     case = small.cases[which]
     problem = families.mpcc("mpcc-test", case.lcs, small.mpc, case.x0)
     _, optimum = miqp.enumerate_modes(problem)
@@ -192,7 +187,7 @@ def test_admm_iterates_satisfy_qp_projection_and_dual_update(small: SimpleNamesp
 
 # --- projections ------------------------------------------------------------------------------
 def test_closed_form_projection_equals_miqp_on_c3plus_projection(small: SimpleNamespace) -> None:
-    miqp = pytest.importorskip("c3bench.solvers.backends.miqp")
+    miqp = pytest.importorskip("c3bench.solvers.modes")
     lcs = small.cases[0].lcs
     layout = full_layout(lcs, 1)
     rng = np.random.default_rng(7)
@@ -212,7 +207,7 @@ def test_closed_form_projection_equals_miqp_on_c3plus_projection(small: SimpleNa
 
 
 def test_c3_miqp_projection_step_is_optimal(small: SimpleNamespace) -> None:
-    miqp = pytest.importorskip("c3bench.solvers.backends.miqp")
+    miqp = pytest.importorskip("c3bench.solvers.modes")
     if not _available("scip"):
         pytest.skip("scip is unavailable")
     lcs = small.cases[0].lcs
@@ -238,7 +233,7 @@ def test_c3_miqp_projection_step_is_optimal(small: SimpleNamespace) -> None:
 # --- rho schedules, dual update, warm start -----------------------------------------------------
 def test_geometric_schedule_is_the_seeds() -> None:
     options = C3Options()
-    rho = dict(SEED_RHO0)
+    rho = dict(REFERENCE_RHO0)
     for i in range(6):
         assert rho == seed_rho(i)
         rho = next_rho(options, rho, 1.0, None, 1.0)
@@ -248,7 +243,7 @@ def test_adaptive_schedule_on_synthetic_residuals() -> None:
     options = C3Options(rho_schedule="adaptive", adaptive_beta=3.0, adaptive_gamma=0.25)
     residuals = [1.0, 0.9, 0.2, 0.1, 0.01, 0.005]
     expected = [1.0, 3.0, 1.0, 3.0, 1.0, 3.0]  # r_i >= 0.25 r_{i-1} ?  (none at i = 0)
-    rho = dict(SEED_RHO0)
+    rho = dict(REFERENCE_RHO0)
     previous = None
     for r, factor in zip(residuals, expected, strict=True):
         assert rho_multiplier(options, r, previous, 123.0) == factor
@@ -264,8 +259,8 @@ def test_residual_balancing_on_synthetic_residuals() -> None:
              ((10.0, 1.0), 1.0), ((10.1, 1.0), 2.0), ((1.0, 10.0), 1.0)]
     for (r, s), factor in cases:
         assert rho_multiplier(options, r, None, s) == factor
-        new = next_rho(options, SEED_RHO0, r, None, s)
-        assert new == {k: v * factor for k, v in SEED_RHO0.items()}
+        new = next_rho(options, REFERENCE_RHO0, r, None, s)
+        assert new == {k: v * factor for k, v in REFERENCE_RHO0.items()}
 
 
 def test_dual_rescaling_keeps_the_unscaled_dual(small: SimpleNamespace) -> None:
@@ -305,7 +300,7 @@ def test_controller_warm_starts_from_the_shifted_iterates(small: SimpleNamespace
     delta, w = shift_warm_start(first.delta, first.w)
     np.testing.assert_array_equal(second.iterates[0].delta, delta)
     np.testing.assert_array_equal(second.iterates[0].w, w)
-    assert second.iterates[0].rho == SEED_RHO0
+    assert second.iterates[0].rho == REFERENCE_RHO0
     np.testing.assert_array_equal(controller.last_safe_input, second.u)
 
 
@@ -546,7 +541,7 @@ def test_lcp_prediction_weights_prefer_the_true_side(small: SimpleNamespace) -> 
 
 # --- registry adapters -----------------------------------------------------------------------
 def test_mpcc_adapter_recovers_the_mpc_and_solves(small: SimpleNamespace) -> None:
-    from c3bench.solvers.backends.c3 import mpc_from_mpcc
+    from c3bench.solvers.backends.c3_admm import mpc_from_mpcc
 
     case = small.cases[1]
     problem = families.mpcc("mpcc-adapter", case.lcs, small.mpc, case.x0)

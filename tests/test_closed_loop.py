@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from c3bench.bench.closed_loop import (
+    ControllerSpec,
     Trajectory,
     cube_geometry,
     label_failure_mode,
@@ -124,10 +125,12 @@ def test_robust_sides_are_seeded() -> None:
 def test_closed_loop_command_writes_records(tmp_path, capsys) -> None:
     from c3bench.bench.cli import main
 
-    out = tmp_path / "run"
-    assert main(["closed-loop", "--duration", "0.25", "--quiet", "--out", str(out)]) == 0
+    assert main(["closed-loop", "--duration", "0.25", "--quiet", "--results",
+                 str(tmp_path)]) == 0
     text = capsys.readouterr().out
     assert "success" in text and "control step" in text
+    out = tmp_path / "closed_loop" / "runs" / ControllerSpec().label()
+    assert f"records           {out}" in text
     assert (out / "steps.csv").exists() and (out / "summary.json").exists()
 
 

@@ -13,6 +13,7 @@ from c3bench.problems.instance import Problem, load_instances
 from c3bench.problems.suites import generate_suite
 from c3bench.solvers import registry
 from c3bench.solvers.base import Settings, settings_for
+from c3bench.solvers.conditioning import conditioning_table
 from c3bench.solvers.equilibrated import (
     ABLATIONS,
     EquilibratedKKT,
@@ -20,7 +21,6 @@ from c3bench.solvers.equilibrated import (
     EquilibrationSteps,
     NotPositiveDefiniteError,
     condition_number,
-    conditioning_table,
     solve_equality_qp,
 )
 from c3bench.solvers.residuals import dual_residual, primal_residual

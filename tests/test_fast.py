@@ -1,5 +1,6 @@
 """Tests of the structure-exploiting batched C3+ (solvers/fast.py) and the batched LCS
-(problems/lcs_batch.py): correctness against references only, never timing."""
+(``LCSBatch`` in problems/lcs.py, built by problems/linearize_batch.py): correctness against
+references only, never timing."""
 
 from __future__ import annotations
 
@@ -12,10 +13,10 @@ import pytest
 
 from c3bench.problems.config import load_config
 from c3bench.problems.instance import Problem, load_instances
-from c3bench.problems.lcs import LCS_MATRICES, linearize
-from c3bench.problems.lcs_batch import BatchLinearizer, LCSBatch
-from c3bench.problems.mpc import build_mpc
-from c3bench.problems.scene import build_scene
+from c3bench.problems.lcs import LCS_MATRICES, LCSBatch
+from c3bench.problems.linearize import linearize
+from c3bench.problems.linearize_batch import BatchLinearizer
+from c3bench.problems.scene import build_mpc, build_scene
 from c3bench.problems.suites import generate_suite, sample_states, scripted_push
 from c3bench.solvers import registry
 from c3bench.solvers.base import PROFILES, Settings, settings_for
@@ -327,7 +328,10 @@ def test_lcs_batch_is_read_only_with_identity(push: SimpleNamespace) -> None:
 
 # --- the perf benchmark (output and schema only; timings are never checked) ---------------------
 def test_perf_writes_rows_files_figure_and_report(tmp_path: Path) -> None:
-    from c3bench.bench.perf import COLUMNS, PerfSettings, perf_report_section, read_perf, run_perf
+    from c3bench.bench.perf import PerfSettings, run_perf
+    from c3bench.bench.report import perf_report_section
+    from c3bench.bench.store import PERF_COLUMNS as COLUMNS
+    from c3bench.bench.store import read_perf
 
     settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3-clarabel"),
                             repeats=2, warmup=1, iterations=2, results_dir=tmp_path)

@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 
 from c3bench.problems.config import load_config
-from c3bench.problems.lcs_batch import BatchLinearizer
-from c3bench.problems.mpc import build_mpc
-from c3bench.problems.scene import build_scene
+from c3bench.problems.linearize_batch import BatchLinearizer
+from c3bench.problems.scene import build_mpc, build_scene
 from c3bench.problems.suites import sample_states, scripted_push
 from c3bench.solvers.c3 import C3Options
 from c3bench.solvers.fast import FastC3Plus, RiccatiOptions

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from c3bench.problems.config import load_config
-from c3bench.problems.lcs import LCS, linearize
+from c3bench.problems.lcs import LCS
+from c3bench.problems.linearize import linearize
 from c3bench.problems.scene import Plant, build_scene, home_state
 from c3bench.problems.suites import scripted_push
 from c3bench.solvers.lcp import lemke

@@ -9,16 +9,13 @@ import numpy as np
 import pytest
 from conftest import enumerated_optimum, pick
 
+from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.instance import Problem
+from c3bench.problems.names import Failure
 from c3bench.solvers import registry
-from c3bench.solvers.backends.miqp import (
-    GurobiMIQP,
-    enumerate_modes,
-    refine_on_face,
-    search_modes,
-    solve_mode,
-)
+from c3bench.solvers.backends.gurobi_backend import GurobiMIQP
 from c3bench.solvers.base import Settings, settings_for
+from c3bench.solvers.modes import enumerate_modes, refine_on_face, search_modes, solve_mode
 from c3bench.solvers.projection import c3plus_projection
 from c3bench.solvers.residuals import complementarity_violation, cost_error, primal_residual
 
@@ -186,11 +183,13 @@ def test_gurobi_reports_the_licence_size_limit() -> None:
     n = 2100  # the pip wheel's licence stops at 2000 variables
     pairs = [(i, i + 1) for i in range(0, 20, 2)]
     big = _toy(np.eye(n), -np.ones(n), pairs)
-    result = GurobiMIQP().solve(big, MID)
+    result = registry.solve("gurobi", big, MID, isolate=False)
     if result.found:
         pytest.skip("this Gurobi licence is not size-limited")
-    assert result.failure == "unavailable"
+    assert result.failure == Failure.UNAVAILABLE
     assert result.status.startswith("licence size limit")
+    with pytest.raises(BackendUnavailable, match="licence size limit"):
+        GurobiMIQP().solve(big, MID)  # raised by the backend, recorded by the registry
 
 
 def test_gurobi_reports_missing_package(monkeypatch: pytest.MonkeyPatch,
@@ -199,10 +198,12 @@ def test_gurobi_reports_missing_package(monkeypatch: pytest.MonkeyPatch,
     monkeypatch.setitem(sys.modules, "gurobipy", None)  # makes ``import gurobipy`` fail
     monkeypatch.setattr(GurobiMIQP, "_licence", None)
     ok, reason = GurobiMIQP().availability()
-    assert not ok and reason == "gurobipy not installed"
+    assert not ok and reason.startswith("cannot import gurobipy")
+    with pytest.raises(BackendUnavailable):
+        GurobiMIQP().require()
     result = registry.solve("gurobi", pick(quick, *PROJECTIONS[0]), MID)
-    assert not result.found and result.failure == "unavailable"
-    assert result.status == "gurobipy not installed"
+    assert not result.found and result.failure == Failure.UNAVAILABLE
+    assert result.status == reason
 
 
 def test_registry_lists_the_complementarity_backends() -> None:

@@ -12,6 +12,7 @@ import pytest
 
 from c3bench.bench.cli import main
 from c3bench.problems import families
+from c3bench.problems.capture import SUITES, SuiteSpec, seed_rho
 from c3bench.problems.config import MPCConfig, SceneConfig, load_config
 from c3bench.problems.instance import (
     FAMILIES,
@@ -22,18 +23,19 @@ from c3bench.problems.instance import (
     problem_arrays,
     save_problem,
 )
-from c3bench.problems.lcs import linearize
-from c3bench.problems.mpc import HorizonLayout, build_mpc
+from c3bench.problems.linearize import linearize
+from c3bench.problems.mpc import HorizonLayout
 from c3bench.problems.scene import (
     Plant,
     RenderUnavailable,
+    build_mpc,
     build_scene,
     home_state,
     make_mjcf,
     render_frame,
     target_state,
 )
-from c3bench.problems.suites import SUITES, SuiteSpec, generate_suite, seed_rho
+from c3bench.problems.suites import generate_suite
 
 CONFIG = load_config()
 TINY = SuiteSpec("tiny", n_states=1, admm_iterations=(0, 5), projection_iterations=(5,),

@@ -1,4 +1,4 @@
-"""Tests of the convex QP backends (solvers/backends/qp.py).
+"""Tests of the convex QP backends (the ``QPBackend`` adapters of solvers/backends/).
 
 * A tiny QP whose primal and dual solution is known in closed form (an active equality, an
   active and an inactive inequality, an active upper and an active lower bound): every
@@ -19,13 +19,17 @@ import numpy as np
 import pytest
 
 from c3bench.problems.instance import Problem, load_instances
+from c3bench.problems.names import QP_FAMILIES, Failure, Precision
 from c3bench.problems.suites import generate_suite
 from c3bench.solvers import registry
-from c3bench.solvers.backends import qp
-from c3bench.solvers.base import QP_FAMILIES, Result, WarmStart, settings_for
+from c3bench.solvers.backends._qp_forms import ConeForm, QPBackend, TwoSidedForm
+from c3bench.solvers.backends.casadi_conic import OCPRows
+from c3bench.solvers.base import Result, WarmStart, settings_for
 from c3bench.solvers.residuals import cost_error, dual_residual, duality_gap, primal_residual
 
-BACKEND_NAMES: list[str] = [backend.name for backend in qp.BACKENDS]
+QP_BACKENDS: list[QPBackend] = [backend for backend in registry.backends().values()
+                                 if isinstance(backend, QPBackend)]
+BACKEND_NAMES: list[str] = [backend.name for backend in QP_BACKENDS]
 
 # --- the closed-form QP --------------------------------------------------------------------
 # min 1/2 |z|^2 - z1 - 2 z2 + z4  s.t.  z1 + z2 = 1,  z3 <= -0.5,  z1 + z4 <= 5,
@@ -103,12 +107,13 @@ def test_quadprog_singular_hessian_fails_with_reason() -> None:
 
 
 def test_families_and_precision() -> None:
-    for backend in qp.BACKENDS:
+    assert len(QP_BACKENDS) == 12
+    for backend in QP_BACKENDS:
         assert backend.families == QP_FAMILIES
-        assert backend.precisions == ("float64",)
+        assert backend.precisions == (Precision.FLOAT64,)
     result = registry.solve("osqp", tiny_problem(), settings_for("mid_accuracy",
                                                                  precision="float32"))
-    assert result.failure == "unsupported"
+    assert result.failure == Failure.UNSUPPORTED
 
 
 # --- the conversions ----------------------------------------------------------------------
@@ -134,7 +139,7 @@ def _expected_gradient(problem: Problem, y: np.ndarray, z: np.ndarray,
 
 def test_two_sided_form_dual_round_trip() -> None:
     problem = _random_problem()
-    form = qp.TwoSidedForm.from_problem(problem)
+    form = TwoSidedForm.from_problem(problem)
     rng = np.random.default_rng(1)
     y, z = rng.standard_normal(problem.n_eq), rng.random(problem.n_ineq)
     z_box = np.zeros(problem.n)
@@ -150,7 +155,7 @@ def test_two_sided_form_dual_round_trip() -> None:
 
 def test_cone_form_dual_split() -> None:
     problem = _random_problem()
-    form = qp.ConeForm.from_problem(problem)
+    form = ConeForm.from_problem(problem)
     rng = np.random.default_rng(2)
     y, z = rng.standard_normal(problem.n_eq), rng.random(problem.n_ineq)
     upper_part, lower_part = rng.random(form.upper_index.size), rng.random(form.lower_index.size)
@@ -193,8 +198,8 @@ def references(quick_qps: list[Problem]) -> dict[str, Result]:
 
 def test_ocp_rows_of_horizon_instances(quick_qps: list[Problem]) -> None:
     for problem in quick_qps:
-        form = qp.TwoSidedForm.from_problem(problem, bounds_as_rows=False)
-        rows = qp._OCPRows.detect(problem, form)
+        form = TwoSidedForm.from_problem(problem, bounds_as_rows=False)
+        rows = OCPRows.detect(problem, form)
         if "layout" not in problem.meta:
             assert rows is None
             continue

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.instance import Problem
+from c3bench.problems.names import Failure
 from c3bench.solvers import registry
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.residuals import residuals
@@ -62,10 +66,34 @@ class Missing(Backend):
     package = "a_package_that_is_not_installed"
 
 
+class NoLicence(Backend):
+    """Installed, but finds out only while solving that it cannot run (a licence limit)."""
+
+    name = "test_no_licence"
+    families = ("c3plus_qp", "c3_qp", "lcp")
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        raise BackendUnavailable("licence size limit: model too large")
+
+
+class NoPlugin(Backend):
+    """Its package imports, its plugin does not: ``require`` says so."""
+
+    name = "test_no_plugin"
+    families = ("c3plus_qp",)
+    package = "numpy"
+
+    def require(self) -> None:
+        super().require()
+        raise BackendUnavailable("numpy was built without the frobnicate plugin")
+
+
 @pytest.fixture(autouse=True)
 def fakes(monkeypatch: pytest.MonkeyPatch) -> None:
     registry.backends()  # load the real ones first
-    for backend in (DenseKKT(), Raises(), Hangs(), ReturnsNaN(), Missing()):
+    for backend in (DenseKKT(), Raises(), Hangs(), ReturnsNaN(), Missing(), NoLicence(),
+                    NoPlugin()):
         monkeypatch.setitem(registry._BACKENDS, backend.name, backend)
 
 
@@ -171,3 +199,57 @@ def test_unbounded_problem_is_never_a_success() -> None:
             assert figures.dual_relative > 1e-3, name  # the success check rejects it
     if ran == 0:
         pytest.skip("no real QP backend installed in this checkout")
+
+
+def test_backend_unavailable_is_an_unavailable_row() -> None:
+    problem = equality_qp()
+    for isolate in (True, False):
+        result = registry.solve("test_no_licence", problem, isolate=isolate)
+        assert not result.found and result.failure == Failure.UNAVAILABLE
+        assert result.status == "licence size limit: model too large"
+    result = registry.solve("test_no_plugin", problem)
+    assert result.failure == Failure.UNAVAILABLE and "frobnicate" in result.status
+    rows = {row.name: row for row in registry.available()}
+    assert not rows["test_no_plugin"].available and "frobnicate" in rows["test_no_plugin"].reason
+    assert rows["test_no_licence"].available
+
+
+def test_backend_modules_are_discovered() -> None:
+    """Every non-helper module of the backends package is imported; helpers (``_name``) are
+    not listed, and every real backend comes from a listed module."""
+    modules = registry.backend_modules()
+    short = {name.rsplit(".", 1)[1] for name in modules}
+    assert {"osqp_backend", "kkt", "lcp", "c3_admm", "c3plus_riccati"} <= short
+    assert not any(name.startswith("_") for name in short)
+    fakes = {"test_dense_kkt", "test_raises", "test_hangs", "test_nan", "test_missing",
+             "test_no_licence", "test_no_plugin"}
+    for name, backend in registry.backends().items():
+        if name not in fakes:
+            assert type(backend).__module__ in modules, (name, type(backend).__module__)
+
+
+def test_a_module_that_fails_to_import_is_recorded(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    package = tmp_path / "fake_backends"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "_helper.py").write_text("raise RuntimeError('helpers are never imported')\n")
+    (package / "broken.py").write_text("import a_package_that_is_not_installed\n")
+    (package / "good.py").write_text(
+        "from c3bench.solvers.base import Backend\n"
+        "from c3bench.solvers.registry import register\n"
+        "class Good(Backend):\n"
+        "    name = 'test_discovered'\n"
+        "register(Good())\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(registry, "BACKEND_PACKAGE", "fake_backends")
+    monkeypatch.setattr(registry, "_LOADED", False)
+    monkeypatch.setattr(registry, "_MODULE_ERRORS", {})
+    monkeypatch.setattr(registry, "_BACKENDS", {})
+    for name in ("fake_backends", "fake_backends.good", "fake_backends.broken"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    assert registry.backend_modules() == ("fake_backends.broken", "fake_backends.good")
+    assert list(registry.backends()) == ["test_discovered"]
+    errors = registry.module_errors()
+    assert list(errors) == ["fake_backends.broken"]
+    assert "a_package_that_is_not_installed" in errors["fake_backends.broken"]

@@ -3,11 +3,11 @@
 For ``min 1/2 x^T P x + q^T x`` s.t. ``A x = b`` (no inequalities, no finite bounds):
 
 * ``equilibrated_kkt``: the seed's 11-step equilibrated Schur-complement method
-  (:mod:`solvers.equilibrated`, with ``Q = P / 2`` and ``c = q``), float64 or float32.
-  ``settings.options`` may name a preset, ``{"ablation": "no_ruiz_schur"}`` (see
-  :data:`solvers.equilibrated.ABLATIONS`), and/or switch single steps,
+  (:mod:`c3bench.solvers.equilibrated`, with ``Q = P / 2`` and ``c = q``), float64 or
+  float32. ``settings.options`` may name a preset, ``{"ablation": "no_ruiz_schur"}`` (see
+  :data:`c3bench.solvers.equilibrated.ABLATIONS`), and/or switch single steps,
   ``{"ridge": 0.0, "projection": False}`` (field names of
-  :class:`solvers.equilibrated.EquilibrationSteps`); unknown names are an error.
+  :class:`c3bench.solvers.equilibrated.EquilibrationSteps`); unknown names are an error.
   ``{"diagnostics": False}`` skips the condition numbers (two SVDs, slower than the solve
   itself), e.g. inside a controller loop; the violations are still reported.
 * ``kkt_ldl``: baseline, the full KKT system ``[[P, A^T], [A, 0]] [x; y] = [-q; b]`` solved
@@ -23,6 +23,17 @@ the KKT matrix); ``solve_time`` covers every factorisation and solve, because an
 controller refactorises each time ``rho`` changes. Condition numbers and violations are
 measured after the timed part, in float64 on the original data. ``y`` follows qpsolvers'
 sign: ``P x + q + A^T y = 0``.
+
+References
+----------
+D. Ruiz, "A scaling algorithm to equilibrate both rows and columns norms in matrices",
+Technical Report RAL-TR-2001-034, Rutherford Appleton Laboratory, 2001 (the equilibration).
+
+J. R. Bunch and L. Kaufman, "Some stable methods for calculating inertia and solving
+symmetric linear systems", Mathematics of Computation 31(137), 163-179, 1977 (``kkt_ldl``).
+
+G. H. Golub and C. F. Van Loan, *Matrix Computations*, 4th ed., Johns Hopkins University
+Press, 2013 (Cholesky and the Schur complement, ``schur_plain``).
 """
 
 from __future__ import annotations
@@ -35,10 +46,10 @@ import numpy as np
 import scipy.linalg
 
 from c3bench.problems.instance import Problem
-from c3bench.solvers.base import EQUALITY_QP_FAMILIES, Backend, Result, Settings, WarmStart
+from c3bench.problems.names import EQUALITY_QP_FAMILIES, Failure, Family, Precision
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.equilibrated import (
     ABLATIONS,
-    DTYPES,
     EquilibratedKKT,
     EquilibrationSteps,
     condition_number,
@@ -79,11 +90,12 @@ def equality_only(problem: Problem) -> tuple[bool, str]:
 class _EqualityQPBackend(Backend):
     """Shared family and structure checks."""
 
-    families = EQUALITY_QP_FAMILIES
+    families: tuple[Family, ...] = EQUALITY_QP_FAMILIES
     package = ""  # numpy / scipy only
-    precisions = ("float64", "float32")
+    precisions: tuple[Precision, ...] = (Precision.FLOAT64, Precision.FLOAT32)
 
     def accepts(self, problem: Problem) -> tuple[bool, str]:
+        """The equality-QP families with equalities only (:func:`equality_only`)."""
         ok, reason = super().accepts(problem)
         if not ok:
             return ok, reason
@@ -100,6 +112,7 @@ class EquilibratedKKTBackend(_EqualityQPBackend):
     steps_override: EquilibrationSteps | None = None
 
     def steps(self, settings: Settings) -> EquilibrationSteps:
+        """The ablation switches of this backend for ``settings.options``."""
         if self.steps_override is not None:
             options = {k: v for k, v in settings.options.items() if k != "diagnostics"}
             return self.steps_override.with_options(options) if options \
@@ -108,13 +121,14 @@ class EquilibratedKKTBackend(_EqualityQPBackend):
 
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
+        """Factorise and solve in ``settings.precision``; diagnostics in float64 after."""
         try:
             steps = self.steps(settings)
         except ValueError as error:
-            return Result.failed(self.name, problem.name, "invalid_input",
+            return Result.failed(self.name, problem.name, Failure.INVALID_INPUT,
                                  f"bad options: {error}")
         watch = Stopwatch()
-        dtype = DTYPES[settings.precision]
+        dtype = settings.dtype
         assert problem.A is not None and problem.b is not None
         with watch.lap("build"):
             Q = (problem.P * 0.5).astype(dtype)
@@ -127,7 +141,7 @@ class EquilibratedKKTBackend(_EqualityQPBackend):
             with watch.lap("substitute"):
                 x, y, x_unprojected = kkt.solve(c, b)
         except (ValueError, np.linalg.LinAlgError) as error:
-            return Result.failed(self.name, problem.name, "error", str(error),
+            return Result.failed(self.name, problem.name, Failure.ERROR, str(error),
                                  build_time=watch.get("build"),
                                  solve_time=watch.get("factorize") + watch.get("substitute"))
         x64 = x.astype(np.float64)
@@ -168,6 +182,7 @@ class SchurPlainBackend(EquilibratedKKTBackend):
 
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
+        """The plain Schur solve; only the raw condition number is reported."""
         result = super().solve(problem, settings, warm_start)
         # only the raw condition number is meaningful without equilibration
         keep = ("cond_schur_raw", "violation_before_projection",
@@ -187,8 +202,9 @@ class KKTLDLBackend(_EqualityQPBackend):
 
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
+        """Assemble ``[[P, A^T], [A, 0]]`` and solve it by LAPACK's ``?sysv``."""
         watch = Stopwatch()
-        dtype = DTYPES[settings.precision]
+        dtype = settings.dtype
         assert problem.A is not None and problem.b is not None
         n, m = problem.n, problem.n_eq
         with watch.lap("build"):
@@ -206,7 +222,7 @@ class KKTLDLBackend(_EqualityQPBackend):
             ill_conditioned = any(issubclass(w.category, scipy.linalg.LinAlgWarning)
                                   for w in caught)
         except (np.linalg.LinAlgError, ValueError) as error:
-            return Result.failed(self.name, problem.name, "error",
+            return Result.failed(self.name, problem.name, Failure.ERROR,
                                  f"KKT matrix is singular: {error}",
                                  build_time=watch.get("build"),
                                  solve_time=time.perf_counter() - start)

@@ -11,8 +11,10 @@ dual residual ``||P x + q + z_box|| = ||min(w, 0)||`` instead of being hidden by
 dual; ``lam^T w`` shows up in the duality gap. ``diagnostics["natural_residual"]`` is
 ``||min(lam, w)||_inf``.
 
-* ``lemke``: complementary pivoting (:func:`solvers.lcp.lemke`); ``iterations`` = pivots.
-* ``pgs``: projected Gauss-Seidel (:func:`solvers.lcp.projected_gauss_seidel`); stops when the
+* ``lemke``: complementary pivoting (:func:`c3bench.solvers.lcp.lemke`; Lemke 1965);
+  ``iterations`` = pivots.
+* ``pgs``: projected Gauss-Seidel (:func:`c3bench.solvers.lcp.projected_gauss_seidel`; Cottle,
+  Pang and Stone 1992); stops when the
   natural residual ``||min(lam, w)||_inf`` *and* the gap ``|lam^T w|`` are both below
   ``settings.tolerance`` (or ``options["tol"]``): the natural residual alone let the gap stay
   ten times above the tolerance on the default suite, so when it is not met the sweeps go on
@@ -20,6 +22,14 @@ dual; ``lam^T w`` shows up in the duality gap. ``diagnostics["natural_residual"]
   ``settings.max_iterations`` sweeps in all (default 10 000); ``iterations`` = sweeps; the
   natural residual after every sweep is in ``trace["natural_residual"]``. A warm start's
   ``x`` is the initial iterate.
+
+References
+----------
+C. E. Lemke, "Bimatrix equilibrium points and mathematical programming", Management Science
+11(7), 681-689, 1965.
+
+R. W. Cottle, J.-S. Pang and R. E. Stone, *The Linear Complementarity Problem*, Academic
+Press, 1992 (projected Gauss-Seidel / SOR, chapter 5).
 """
 
 from __future__ import annotations
@@ -29,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from c3bench.problems.instance import Problem
+from c3bench.problems.names import Failure, Family, Precision
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.lcp import LCPSolution, lemke, natural_residual, projected_gauss_seidel
 from c3bench.solvers.registry import register
@@ -51,11 +62,14 @@ def lcp_form(problem: Problem) -> tuple[bool, str]:
 
 
 class _LCPBackend(Backend):
-    families = ("lcp",)
+    """Shared conversion: ``LCP(P, q)`` from the instance, the result's box duals."""
+
+    families = (Family.LCP,)
     package = ""  # our own code (numpy)
-    precisions = ("float64",)
+    precisions = (Precision.FLOAT64,)
 
     def accepts(self, problem: Problem) -> tuple[bool, str]:
+        """The ``lcp`` family in the exact form ``x >= 0`` (:func:`lcp_form`)."""
         ok, reason = super().accepts(problem)
         if not ok:
             return ok, reason
@@ -63,10 +77,12 @@ class _LCPBackend(Backend):
 
     def _run(self, M: np.ndarray, q: np.ndarray, settings: Settings,
              warm_start: WarmStart | None) -> LCPSolution:
+        """The method itself on ``LCP(M, q)``."""
         raise NotImplementedError
 
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
+        """Run the method; an unsolved LCP is ``Failure.ERROR`` with the last iterate."""
         watch = Stopwatch()
         with watch.lap("build"):
             M = np.array(problem.P, dtype=np.float64)
@@ -81,7 +97,7 @@ class _LCPBackend(Backend):
                                   "solve_time": watch.get("solve"), "trace": trace}
         if not outcome.found or outcome.z is None:
             last = None if outcome.z is None else np.asarray(outcome.z, dtype=np.float64)
-            return Result.failed(self.name, problem.name, "error", outcome.status, x=last,
+            return Result.failed(self.name, problem.name, Failure.ERROR, outcome.status, x=last,
                                  **common)
         x = np.asarray(outcome.z, dtype=np.float64)
         w = M @ x + q
@@ -91,7 +107,7 @@ class _LCPBackend(Backend):
 
 
 class LemkeBackend(_LCPBackend):
-    """Lemke's complementary pivoting method."""
+    """Lemke's complementary pivoting method (Lemke 1965)."""
 
     name = "lemke"
     description = "Lemke's complementary pivoting (covering vector e = 1) on LCP(P, q)"
@@ -103,7 +119,7 @@ class LemkeBackend(_LCPBackend):
 
 
 class PGSBackend(_LCPBackend):
-    """Projected Gauss-Seidel sweeps."""
+    """Projected Gauss-Seidel sweeps (Cottle, Pang and Stone 1992)."""
 
     name = "pgs"
     description = "projected Gauss-Seidel on LCP(P, q); stops on the natural residual and lam^T w"

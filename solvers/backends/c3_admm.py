@@ -1,20 +1,20 @@
 """Registry adapters ``c3plus_admm`` and ``c3_admm``: the C3 / C3+ controller as an mpcc solver.
 
-A thin layer over :mod:`solvers.c3`. From an ``mpcc`` instance (built by
-:func:`problems.families.mpcc`) the adapter recovers
+A thin layer over :mod:`c3bench.solvers.c3` (the ADMM lives there). From an ``mpcc`` instance
+(built by :func:`c3bench.problems.families.mpcc`) the adapter recovers
 
 * the LCS (``problem.lcs``) and ``x0`` (``problem.data["x0"]``);
 * the MPC cost from ``P``, ``q``: ``Q = P_{x_0 x_0} / 2``, ``R = P_{u_0 u_0} / 2``,
   ``Q_f = P_{x_T x_T} / 2`` and ``x*`` the least-squares solution of ``2 Q_f x* = -q_{x_T}``
   (any ``x*`` component with zero weight is irrelevant to the cost); the force limit from
-  ``ub`` on ``u``. The instance is then rebuilt with :func:`problems.families.mpcc` and must
-  match ``P``, ``q``, ``A``, ``b``, the bounds and the offset (else the backend declines: the
-  instance was not an mpcc of this form);
+  ``ub`` on ``u``. The instance is then rebuilt with :func:`c3bench.problems.families.mpcc`
+  and must match ``P``, ``q``, ``A``, ``b``, the bounds and the offset (else the backend
+  declines: the instance was not an mpcc of this form);
 
-and runs :func:`solvers.c3.solve_c3` from a cold start (or from ``warm_start.x``, an mpcc
+and runs :func:`c3bench.solvers.c3.solve_c3` from a cold start (or from ``warm_start.x``, an mpcc
 vector whose horizon steps become the initial ``delta``; ``w = 0``).
 
-Settings: ``settings.options`` keys that are :class:`solvers.c3.C3Options` fields
+Settings: ``settings.options`` keys that are :class:`c3bench.solvers.c3.C3Options` fields
 (``qp_backend``, ``admm_iterations``, ``rho_schedule``, ``rho0``, ``stopping``, ...) are passed
 on; ``settings.max_iterations`` caps the ADMM iterations; the inner QP (and projection) run
 with the outer profile, tolerance, time limit and precision. ``options["solution"]`` picks the
@@ -32,8 +32,19 @@ returned point:
 ``found`` is true when the run completed and the returned point's complementarity violation
 and the final consensus residual ``||z - delta||_inf`` are at most ``settings.tolerance``.
 ``objective`` is the mpcc cost of the returned point. ``trace`` is the controller's
-per-iteration record (:meth:`solvers.c3.C3Trace.series`); ``diagnostics`` add the costs of the
-other two candidate points.
+per-iteration record (:meth:`c3bench.solvers.c3.C3Trace.series`); ``diagnostics`` add the
+costs of the other two candidate points.
+
+References
+----------
+W. Aydinoglu and M. Posa, "Real-time multi-contact model predictive control via ADMM",
+IEEE International Conference on Robotics and Automation (ICRA), 2022 (C3).
+
+Bui et al., 2025: C3+, the variant with the slack ``eta`` and a closed-form projection.
+
+S. Boyd, N. Parikh, E. Chu, B. Peleato and J. Eckstein, "Distributed optimization and
+statistical learning via the alternating direction method of multipliers", Foundations and
+Trends in Machine Learning 3(1), 1-122, 2011 (consensus ADMM, residuals, rho updates).
 """
 
 from __future__ import annotations
@@ -47,6 +58,7 @@ import numpy as np
 from c3bench.problems import families
 from c3bench.problems.instance import Problem
 from c3bench.problems.mpc import MPC, HorizonLayout
+from c3bench.problems.names import Failure, Family, Precision, Variant
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.c3 import C3Options, C3Solution, rollout_vector, solve_c3, to_full_steps
 from c3bench.solvers.registry import register
@@ -75,6 +87,9 @@ def mpc_from_mpcc(problem: Problem) -> MPC:
               force_limit=force_limit)
     rebuilt = families.mpcc(problem.name, problem.lcs, mpc, problem.data["x0"])
     scale = max(1.0, float(np.max(np.abs(problem.P))))
+    assert rebuilt.A is not None and rebuilt.b is not None
+    assert rebuilt.lb is not None and rebuilt.ub is not None
+    assert rebuilt.complementarity is not None
     checks = {
         "P": np.allclose(rebuilt.P, problem.P, rtol=1e-12, atol=1e-12 * scale),
         "q": np.allclose(rebuilt.q, problem.q, rtol=1e-9, atol=1e-9 * scale),
@@ -95,7 +110,7 @@ def mpc_from_mpcc(problem: Problem) -> MPC:
     return mpc
 
 
-def options_for(variant: str, settings: Settings) -> tuple[C3Options, str]:
+def options_for(variant: Variant, settings: Settings) -> tuple[C3Options, str]:
     """``C3Options`` and the solution point from the settings (module docstring)."""
     allowed = {f.name for f in fields(C3Options)} - _NOT_PASSED
     chosen: dict[str, Any] = {k: v for k, v in settings.options.items() if k in allowed}
@@ -137,19 +152,20 @@ def _points(problem: Problem, mpc: MPC, solution: C3Solution) -> dict[str, np.nd
 class C3Admm(Backend):
     """C3 / C3+ consensus ADMM on the ``mpcc`` family (see the module docstring)."""
 
-    families = ("mpcc",)
+    families = (Family.MPCC,)
     package = ""
-    precisions = ("float64",)
+    precisions = (Precision.FLOAT64,)
 
-    def __init__(self, variant: str) -> None:
+    def __init__(self, variant: Variant) -> None:
         self.variant = variant
         self.name = f"{variant}_admm"
-        projection = ("closed-form projection" if variant == "c3plus"
+        projection = ("closed-form projection" if variant == Variant.C3PLUS
                       else "MIQP projection per step")
-        self.description = (f"{'C3+' if variant == 'c3plus' else 'C3'} consensus ADMM "
+        self.description = (f"{'C3+' if variant == Variant.C3PLUS else 'C3'} consensus ADMM "
                             f"(QP step by a registry backend, {projection})")
 
     def accepts(self, problem: Problem) -> tuple[bool, str]:
+        """An ``mpcc`` instance carrying its LCS, ``data["x0"]`` and ``meta["layout"]``."""
         ok, reason = super().accepts(problem)
         if not ok:
             return ok, reason
@@ -159,13 +175,14 @@ class C3Admm(Backend):
 
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
+        """Recover the MPC, run the ADMM and return the chosen point (module docstring)."""
         watch = Stopwatch()
         with watch.lap("build"):
             try:
                 mpc = mpc_from_mpcc(problem)
                 options, point = options_for(self.variant, settings)
             except (ValueError, TypeError) as error:
-                return Result.failed(self.name, problem.name, "unsupported", str(error))
+                return Result.failed(self.name, problem.name, Failure.UNSUPPORTED, str(error))
             lcs = problem.lcs
             assert lcs is not None
             delta0 = None
@@ -188,7 +205,7 @@ class C3Admm(Backend):
                                   "solve_time": watch.get("solve"),
                                   "trace": trace.series(), "diagnostics": diagnostics}
         if not solution.ok or point not in points:
-            failure = "non_finite" if any(trace.non_finite) else "error"
+            failure = Failure.NON_FINITE if any(trace.non_finite) else Failure.ERROR
             status = solution.status if not solution.ok else \
                 f"{solution.status}; the {point} point is unavailable (Lemke failed)"
             return Result.failed(self.name, problem.name, failure, status, **common)
@@ -207,12 +224,12 @@ class C3Admm(Backend):
             return None
         steps = x[:layout.horizon * layout.step_size].reshape(layout.horizon,
                                                               layout.step_size)
-        if self.variant == "c3":
+        if self.variant == Variant.C3:
             keep = np.ones(layout.step_size, dtype=bool)
             keep[layout.index(0, "eta")] = False
             steps = steps[:, keep]
         return steps.copy()
 
 
-register(C3Admm("c3plus"))
-register(C3Admm("c3"))
+register(C3Admm(Variant.C3PLUS))
+register(C3Admm(Variant.C3))

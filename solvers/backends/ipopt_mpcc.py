@@ -39,22 +39,39 @@ violation, both measured by :mod:`solvers.residuals`, are within
 Options (``settings.options``): ``eps0``, ``eps_factor``, ``eps_min`` (Scholtes), ``rho0``,
 ``rho_factor``, ``max_outer`` (penalty), ``warm_multipliers``, ``polish``, and any
 ``ipopt.<name>`` (passed to IPOPT).
+
+References
+----------
+A. Wächter and L. T. Biegler, "On the implementation of an interior-point filter line-search
+algorithm for large-scale nonlinear programming", Mathematical Programming 106(1), 25-57,
+2006 (IPOPT).
+
+S. Scholtes, "Convergence properties of a regularization scheme for mathematical programs
+with complementarity constraints", SIAM Journal on Optimization 11(4), 918-936, 2001.
+
+X. M. Hu and D. Ralph, "Convergence of a penalty method for mathematical programming with
+complementarity constraints", Journal of Optimization Theory and Applications 123(2),
+365-390, 2004.
+
+J. A. E. Andersson, J. Gillis, G. Horn, J. B. Rawlings and M. Diehl, "CasADi: a software
+framework for nonlinear optimization and optimal control", Mathematical Programming
+Computation 11(1), 1-36, 2019.
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sparse
 
+from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.instance import Problem
-from c3bench.solvers.base import COMPLEMENTARITY_FAMILIES, Backend, Result, Settings, WarmStart
+from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, Failure, Family
+from c3bench.solvers.base import Backend, Result, Settings, WarmStart, require_module
+from c3bench.solvers.output import quiet_stdout
 from c3bench.solvers.registry import register
 from c3bench.solvers.residuals import complementarity_violation, primal_residual
 from c3bench.solvers.timing import Stopwatch
@@ -67,25 +84,6 @@ DEFAULT_RHO_FACTOR = 10.0
 DEFAULT_MAX_OUTER = 14
 WARM_MU_INIT = 1e-6
 POLISH_TOLERANCE = 1e-10
-
-
-@contextlib.contextmanager
-def quiet_stdout() -> Iterator[None]:
-    """Silence C-level writes to file descriptor 1 (IPOPT's and Bonmin's banners)."""
-    try:
-        saved = os.dup(1)
-    except OSError:
-        yield
-        return
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 1)
-            try:
-                yield
-            finally:
-                os.dup2(saved, 1)
-    finally:
-        os.close(saved)
 
 
 @dataclass
@@ -146,24 +144,27 @@ def independent_rows(matrix: np.ndarray, tolerance: float = 1e-10) -> np.ndarray
     return np.sort(pivots[:rank]).astype(np.int64)
 
 
+def _pairs(problem: Problem) -> np.ndarray:
+    """The complementarity pairs (``accepts`` made sure there are some)."""
+    assert problem.complementarity is not None
+    return problem.complementarity
+
+
 class _IpoptMPCC(Backend):
     """Shared machinery: CasADi model with one scalar parameter, warm-started IPOPT."""
 
-    families = COMPLEMENTARITY_FAMILIES
+    families: tuple[Family, ...] = COMPLEMENTARITY_FAMILIES
     package = "casadi"
     warm_default = True
 
-    def availability(self) -> tuple[bool, str]:
-        ok, reason = super().availability()
-        if not ok:
-            return ok, reason
-        import casadi
-
+    def require(self) -> None:
+        """CasADi imports and has the ``ipopt`` nlpsol plugin."""
+        casadi = require_module("casadi")
         if not casadi.has_nlpsol("ipopt"):
-            return False, "CasADi was built without the ipopt plugin"
-        return True, ""
+            raise BackendUnavailable("CasADi was built without the ipopt plugin")
 
     def accepts(self, problem: Problem) -> tuple[bool, str]:
+        """Complementarity pairs whose members all have the lower bound 0."""
         ok, reason = super().accepts(problem)
         if not ok:
             return ok, reason
@@ -207,7 +208,7 @@ class _IpoptMPCC(Backend):
     def _build(self, problem: Problem, settings: Settings, deadline: float,
                relaxation: str, fixed_zero: np.ndarray | None = None,
                equality_rows: np.ndarray | None = None, warm: bool = False
-               ) -> tuple[Any, dict]:
+               ) -> tuple[Any, dict[str, Any]]:
         """CasADi solver and its bound arguments.
 
         ``relaxation``: ``"scholtes"`` (rows ``z_i z_j - p <= 0``), ``"penalty"``
@@ -222,17 +223,17 @@ class _IpoptMPCC(Backend):
         P = casadi.DM(sparse.csc_matrix(problem.P))
         objective = 0.5 * casadi.dot(z, casadi.mtimes(P, z)) + casadi.dot(
             casadi.DM(problem.q), z) + problem.objective_offset
-        pairs = problem.complementarity
+        pairs = _pairs(problem)
         products = z[pairs[:, 0].tolist()] * z[pairs[:, 1].tolist()]
         rows, lower, upper = [], [], []
-        if problem.A is not None:
+        if problem.A is not None and problem.b is not None:
             keep = (np.arange(problem.n_eq) if equality_rows is None
                     else np.asarray(equality_rows, dtype=np.int64))
             if keep.size:
                 rows.append(casadi.mtimes(casadi.DM(sparse.csc_matrix(problem.A[keep])), z))
                 lower.append(problem.b[keep])
                 upper.append(problem.b[keep])
-        if problem.G is not None:
+        if problem.G is not None and problem.h is not None:
             rows.append(casadi.mtimes(casadi.DM(sparse.csc_matrix(problem.G)), z))
             lower.append(np.full(problem.n_ineq, -np.inf))
             upper.append(problem.h)
@@ -258,8 +259,9 @@ class _IpoptMPCC(Backend):
         return solver, arguments
 
     @staticmethod
-    def _run(solver: Any, arguments: dict, value: float, start: _Point,
+    def _run(solver: Any, arguments: dict[str, Any], value: float, start: _Point,
              warm: bool) -> _Point:
+        """One IPOPT solve at parameter ``value`` from ``start`` (quietly)."""
         call = dict(arguments, x0=start.x, p=value)
         if warm and start.lam_x is not None:
             call["lam_x0"] = start.lam_x
@@ -285,7 +287,8 @@ class _IpoptMPCC(Backend):
             x = np.zeros(problem.n)
         lb = problem.lb if problem.lb is not None else np.full(problem.n, -np.inf)
         ub = problem.ub if problem.ub is not None else np.full(problem.n, np.inf)
-        return np.clip(x, lb, ub)
+        clipped: np.ndarray = np.clip(x, lb, ub)
+        return clipped
 
     # --- outer loops ------------------------------------------------------------------------
     def _outer(self, problem: Problem, settings: Settings, deadline: float,
@@ -297,7 +300,7 @@ class _IpoptMPCC(Backend):
                 outcome: _Outcome, watch: Stopwatch) -> None:
         """Fix the smaller member of each pair at 0 and re-solve the convex QP with IPOPT."""
         point = outcome.point
-        pairs = problem.complementarity
+        pairs = _pairs(problem)
         x = point.x
         zero = np.where(x[pairs[:, 0]] <= x[pairs[:, 1]], pairs[:, 0], pairs[:, 1])
         before_objective = problem.objective(x)
@@ -335,6 +338,8 @@ class _IpoptMPCC(Backend):
 
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
+        """Outer loop, then the mode polish; ``found`` by the final residuals (module
+        docstring)."""
         watch = Stopwatch()
         deadline = time.perf_counter() + 0.9 * settings.time_limit
         start = self._initial(problem, warm_start)
@@ -351,10 +356,10 @@ class _IpoptMPCC(Backend):
         finite = bool(np.all(np.isfinite(x)))
         found = finite and primal <= limit and violation <= limit
         status = outcome.status
-        failure = ""
+        failure = Failure.NONE
         if not found:
             timed_out = time.perf_counter() >= deadline
-            failure = "timeout" if timed_out else "error"
+            failure = Failure.TIMEOUT if timed_out else Failure.ERROR
             status += (f"; final point: primal residual {primal:.3g}, complementarity "
                        f"{violation:.3g}, threshold {limit:.3g}")
         return Result(solver=self.name, problem=problem.name, found=found, status=status,

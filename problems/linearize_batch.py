@@ -1,13 +1,14 @@
 """Batched LCS linearisation: one control step's LCS for many model samples (cube sides) at once.
 
 The robust controller linearises ``n`` models that differ only in the cube side ``l_j`` at the
-same measured state ``x`` and input ``u``. :func:`problems.lcs.linearize` would repeat every
-MuJoCo call ``n`` times; :class:`BatchLinearizer` splits the work by what depends on ``l``:
+same measured state ``x`` and input ``u``. :func:`c3bench.problems.linearize.linearize` would
+repeat every MuJoCo call ``n`` times; :class:`BatchLinearizer` splits the work by what depends
+on ``l``:
 
 **Once per control step** (MuJoCo, on one reference model of side ``l_ref``):
 
 * the smooth dynamics by central differences, ``J_q^ref, J_v^ref, J_u^ref``, the smooth
-  acceleration ``a^ref`` and ``N``, ``N^+`` (:func:`problems.lcs.smooth_dynamics`);
+  acceleration ``a^ref`` and ``N``, ``N^+`` (:func:`c3bench.problems.linearize.smooth_dynamics`);
 * the mass matrix ``M^ref`` and the cube's rotational Jacobian ``J_r`` (3 x nv);
 * the cube pose (origin ``p``, rotation ``R``), the origin Jacobians ``J_p0`` of the cube and
   of the ball, the ball centre ``b`` and its radius ``r``.
@@ -16,10 +17,11 @@ MuJoCo call ``n`` times; :class:`BatchLinearizer` splits the work by what depend
 
 * cube inertia ``I_j = m (h_j^2 + h_j^2) / 3`` with ``h_j = l_j / 2`` (MuJoCo's box formula;
   the cube's inertia is isotropic, so ``M_j = M^ref + (I_j - I_ref) J_r^T J_r``);
-* ``M_j^-1`` (inverted, then symmetrised like :func:`problems.lcs.smooth_dynamics`) and the
-  smooth dynamics of sample ``j``: with ``v' = M^-1 f(q, v, u)`` and ``f`` independent of
-  ``l`` (the cube's centre of mass is on its hinge and its inertia is isotropic, so neither
-  the bias forces nor ``M`` depend on ``q`` or on ``l`` other than through ``I_j``),
+* ``M_j^-1`` (inverted, then symmetrised like
+  :func:`c3bench.problems.linearize.smooth_dynamics`) and the smooth dynamics of sample
+  ``j``: with ``v' = M^-1 f(q, v, u)`` and ``f`` independent of ``l`` (the cube's centre of
+  mass is on its hinge and its inertia is isotropic, so neither the bias forces nor ``M``
+  depend on ``q`` or on ``l`` other than through ``I_j``),
   ``J_*^j = M_j^-1 M^ref J_*^ref`` for ``* = q, v, u``, ``a^j = M_j^-1 M^ref a^ref`` and
   ``d_v^j = a^j - J_q^j q_0 - J_v^j v_0 - J_u^j u``;
 * contact geometry: bottom corners ``c_i^j = p + R s_i^j`` with ``s = (+-h_j, 0, -h_j)``,
@@ -30,167 +32,28 @@ MuJoCo call ``n`` times; :class:`BatchLinearizer` splits the work by what depend
   point ``b - r n``;
 * point Jacobians of a body point ``x``: ``J_p(x) = J_p0 + J_r x (x - p_0)`` column by column
   (rigid-body velocity ``v_x = v_0 + omega x (x - p_0)``);
-* the LCS blocks with exactly the formulas of :mod:`problems.lcs` (Anitescu or
-  Stewart-Trinkle), as batched matrix products.
+* the LCS blocks with exactly the formulas of :func:`c3bench.problems.lcs.assemble_lcs`
+  (Anitescu or Stewart-Trinkle), as batched matrix products.
 
 The result equals ``linearize(build_scene(l=l_j), x, u, dt)`` for every sample to rounding
 (tested to 1e-9 along the scripted push). Only the planar scene is supported; the spatial
 variant raises ``NotImplementedError``.
+
+This is the plant side (it imports MuJoCo); the :class:`c3bench.problems.lcs.LCSBatch` type it
+returns is in the plant-free core.
 """
 
 from __future__ import annotations
 
-import itertools
-import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
 
 from c3bench.problems.config import Config, load_config
-from c3bench.problems.lcs import (
-    CONTACT_MODELS,
-    LCS,
-    LCS_MATRICES,
-    assemble_lcs,
-    check_dt,
-    smooth_dynamics,
-)
+from c3bench.problems.lcs import CONTACT_MODELS, LCSBatch, assemble_lcs, check_dt
+from c3bench.problems.linearize import smooth_dynamics
 from c3bench.problems.scene import Scene, build_scene
-
-_UIDS = itertools.count(1)
-
-
-def next_uid() -> int:
-    """A process-wide unique integer: the identity of an LCS batch (factorisation caches)."""
-    return next(_UIDS)
-
-
-@dataclass
-class LCSBatch:
-    """``n`` LCS with the same dimensions, stacked along a leading sample axis.
-
-    ``x'_j = A_j x + B_j u + D_j lam + d_j``, ``0 <= lam perp E_j x + F_j lam + H_j u + c_j``.
-
-    Attributes
-    ----------
-    A, B, D, d, E, F, H, c
-        (n, ...) stacks of the LCS matrices of :class:`problems.lcs.LCS`.
-    dt
-        Time step (s), common to all samples.
-    contact_model, n_contacts, friction_directions
-        As in :class:`problems.lcs.LCS`.
-    phi
-        (n, contacts) signed distances.
-    sides
-        (n,) cube sides of the samples (``nan`` when unknown).
-    uid
-        Identity of this batch: arrays are made read-only at construction, so the same
-        ``uid`` means the same data (used as the LCS key of factorisation caches).
-    """
-
-    A: np.ndarray
-    B: np.ndarray
-    D: np.ndarray
-    d: np.ndarray
-    E: np.ndarray
-    F: np.ndarray
-    H: np.ndarray
-    c: np.ndarray
-    dt: float
-    contact_model: str = "anitescu"
-    n_contacts: int = 0
-    friction_directions: int = 0
-    phi: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    sides: np.ndarray | None = None
-    uid: int = field(default=0, init=False)
-
-    def __post_init__(self) -> None:
-        n = int(np.shape(self.A)[0]) if np.ndim(self.A) == 3 else -1
-        if n < 1:
-            raise ValueError(f"LCSBatch.A must have shape (n, nx, nx) with n >= 1, got "
-                             f"{np.shape(self.A)}")
-        nx, nu, nlam = self.A.shape[1], np.shape(self.B)[-1], np.shape(self.D)[-1]
-        expected = {
-            "A": (n, nx, nx), "B": (n, nx, nu), "D": (n, nx, nlam), "d": (n, nx),
-            "E": (n, nlam, nx), "F": (n, nlam, nlam), "H": (n, nlam, nu), "c": (n, nlam),
-        }
-        for name, shape in expected.items():
-            value = np.asarray(getattr(self, name))
-            if value.shape != shape:
-                raise ValueError(f"LCSBatch.{name} must have shape {shape}, got {value.shape}")
-            if not np.issubdtype(value.dtype, np.floating):
-                value = value.astype(np.float64)
-            if not np.all(np.isfinite(value)):
-                raise ValueError(f"LCSBatch.{name} has non-finite entries")
-            if value.flags.writeable:
-                value.setflags(write=False)
-            setattr(self, name, value)
-        if not (math.isfinite(self.dt) and self.dt > 0):
-            raise ValueError(f"LCSBatch.dt must be a finite number > 0, got {self.dt!r}")
-        self.phi = np.asarray(self.phi, dtype=float)
-        if self.sides is not None:
-            self.sides = np.asarray(self.sides, dtype=float).reshape(n)
-        self.uid = next_uid()
-
-    @property
-    def n_samples(self) -> int:
-        return int(self.A.shape[0])
-
-    @property
-    def nx(self) -> int:
-        return int(self.A.shape[1])
-
-    @property
-    def nu(self) -> int:
-        return int(self.B.shape[2])
-
-    @property
-    def nlam(self) -> int:
-        return int(self.D.shape[2])
-
-    def sample(self, j: int) -> LCS:
-        """Sample ``j`` as a :class:`problems.lcs.LCS` (float64 copies)."""
-        arrays = {name: np.array(getattr(self, name)[j], dtype=np.float64)
-                  for name in LCS_MATRICES}
-        phi = self.phi[j].copy() if self.phi.ndim == 2 and self.phi.shape[0] else np.zeros(0)
-        return LCS(**arrays, dt=self.dt, contact_model=self.contact_model,
-                   n_contacts=self.n_contacts, friction_directions=self.friction_directions,
-                   phi=phi)
-
-    def samples(self) -> list[LCS]:
-        """All samples as :class:`problems.lcs.LCS` objects."""
-        return [self.sample(j) for j in range(self.n_samples)]
-
-    @classmethod
-    def from_lcs(cls, systems: Sequence[LCS], sides: Sequence[float] | None = None
-                 ) -> LCSBatch:
-        """Stack LCS objects (same dimensions, dt and contact model) into a batch."""
-        if len(systems) < 1:
-            raise ValueError("need at least one LCS")
-        first = systems[0]
-        for lcs in systems[1:]:
-            if (lcs.nx, lcs.nu, lcs.nlam) != (first.nx, first.nu, first.nlam):
-                raise ValueError("all LCS must have the same dimensions")
-            if lcs.dt != first.dt or lcs.contact_model != first.contact_model:
-                raise ValueError("all LCS must have the same dt and contact model")
-        arrays = {name: np.stack([getattr(lcs, name) for lcs in systems])
-                  for name in LCS_MATRICES}
-        phis = [np.asarray(lcs.phi, dtype=float) for lcs in systems]
-        phi = np.stack(phis) if len({p.shape for p in phis}) == 1 else np.zeros((len(phis), 0))
-        return cls(**arrays, dt=first.dt, contact_model=first.contact_model,
-                   n_contacts=first.n_contacts, friction_directions=first.friction_directions,
-                   phi=phi, sides=None if sides is None else np.asarray(sides, dtype=float))
-
-    def repeat(self, n: int) -> LCSBatch:
-        """A batch of ``n`` copies of sample 0 (for tests of identical samples)."""
-        arrays = {name: np.repeat(getattr(self, name)[:1], n, axis=0) for name in LCS_MATRICES}
-        sides = None if self.sides is None else np.repeat(self.sides[:1], n)
-        phi = np.repeat(self.phi[:1], n, axis=0) if self.phi.ndim == 2 else self.phi
-        return LCSBatch(**arrays, dt=self.dt, contact_model=self.contact_model,
-                        n_contacts=self.n_contacts,
-                        friction_directions=self.friction_directions, phi=phi, sides=sides)
 
 
 def _skew_apply(columns: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -225,7 +88,7 @@ class BatchLinearizer:
             raise NotImplementedError(
                 f"BatchLinearizer supports the planar scene only (got variant {variant!r}); "
                 "the spatial scene needs the four-corner, 3-D ball-box geometry: use "
-                "problems.lcs.linearize per sample")
+                "c3bench.problems.linearize.linearize per sample")
         if contact_model not in CONTACT_MODELS:
             raise ValueError(f"contact_model must be one of {CONTACT_MODELS}, got "
                              f"{contact_model!r}")
@@ -345,17 +208,10 @@ class BatchLinearizer:
                   J_q: np.ndarray, J_v: np.ndarray, J_u: np.ndarray, d_v: np.ndarray,
                   M_inv: np.ndarray, phi: np.ndarray, J_n: np.ndarray, J_t: np.ndarray
                   ) -> LCSBatch:
-        """The LCS blocks of :func:`problems.lcs.assemble_lcs`, one model per sample."""
+        """The LCS blocks of :func:`c3bench.problems.lcs.assemble_lcs`, one model per sample."""
         arrays = assemble_lcs(dt, q0, N, Np, J_q, J_v, J_u, d_v, M_inv, phi, J_n, J_t,
                               self.E_t, self.mu, self.contact_model)
         return LCSBatch(**arrays, dt=dt, contact_model=self.contact_model,
                         n_contacts=self.n_contacts,
                         friction_directions=self.friction_directions, phi=phi,
                         sides=self.sides.copy())
-
-
-def linearize_batch(sides: Sequence[float] | np.ndarray, x: np.ndarray, u: np.ndarray,
-                    dt: float, config: Config | None = None, variant: str = "planar",
-                    contact_model: str = "anitescu") -> LCSBatch:
-    """One-shot :meth:`BatchLinearizer.linearize` (builds the reference model each call)."""
-    return BatchLinearizer(sides, config, variant, contact_model).linearize(x, u, dt)

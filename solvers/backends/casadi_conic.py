@@ -1,0 +1,285 @@
+"""``casadi_qpoases``, ``casadi_hpipm``: qpOASES and HPIPM through CasADi's ``conic`` interface.
+
+The problem goes to ``casadi.conic`` as ``lba <= [A; G] z <= uba`` with native bounds
+``lbx <= z <= ubx`` (:class:`TwoSidedForm` without bound rows). CasADi's multipliers satisfy
+``H z + g + A^T lam_a + lam_x = 0`` with ``lam > 0`` at an active upper side, i.e. qpsolvers'
+signs.
+
+``casadi_qpoases``
+    qpOASES' online active-set method: ``printLevel none``, ``CPUtime`` = time limit,
+    ``enableEqualities`` on in every profile (equalities start in the working set: 62 instead
+    of 364 iterations on a ``c3plus_qp`` instance); ``terminationTolerance = tolerance`` in
+    non-default profiles; ``nWSR = max_iterations``.
+``casadi_hpipm``
+    HPIPM's interior point for optimal-control QPs: the rows are put in HPIPM's stage layout
+    (:class:`OCPRows`, stages of ``meta["layout"]``; one stage for problems without one),
+    ``mode robust``, ``res_g_max = res_b_max = res_d_max = res_m_max = tolerance`` in
+    non-default profiles, ``iter_max = max_iterations``; infinite bounds become
+    :data:`HPIPM_INFINITY`, and a solution reaching half of it is reported as not found.
+
+``settings.options`` are passed last to ``casadi.conic``, so they win. A warm start sets
+``x0`` and the row multiplier ``lam_a0`` (HPIPM: ``warm_start = 1``).
+
+References
+----------
+H. J. Ferreau, C. Kirches, A. Potschka, H. G. Bock and M. Diehl, "qpOASES: a parametric
+active-set algorithm for quadratic programming", Mathematical Programming Computation 6(4),
+327-363, 2014.
+
+G. Frison and M. Diehl, "HPIPM: a high-performance quadratic programming framework for model
+predictive control", IFAC-PapersOnLine 53(2), 6563-6569, 2020.
+
+J. A. E. Andersson, J. Gillis, G. Horn, J. B. Rawlings and M. Diehl, "CasADi: a software
+framework for nonlinear optimization and optimal control", Mathematical Programming
+Computation 11(1), 1-36, 2019.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from c3bench.problems.errors import BackendUnavailable
+from c3bench.problems.instance import Problem
+from c3bench.solvers.backends._qp_forms import (
+    QPBackend,
+    TwoSidedForm,
+    failure_category,
+    qp_result,
+)
+from c3bench.solvers.base import Result, Settings, WarmStart, require_module
+from c3bench.solvers.output import quiet_stdout
+from c3bench.solvers.registry import register
+from c3bench.solvers.timing import Stopwatch
+
+# HPIPM (through CasADi) replaces infinite bounds by a finite number (CasADi's default 1e8).
+# Its slack ``1e8 - x`` then carries a rounding error of about 1e8 * 2.2e-16 = 2e-8, so a
+# tolerance of 1e-9 can never be met; 1e6 keeps the floor at 2e-10. A solution reaching half
+# of it is reported as a failure (the stand-in bound could be active).
+HPIPM_INFINITY = 1e6
+# hpipm_common.h: enum hpipm_status
+HPIPM_STATUS: dict[str, str] = {"0": "success", "1": "maximum iterations reached",
+                                "2": "minimum step length reached", "3": "NaN in solution",
+                                "4": "inconsistent equality constraints"}
+
+
+@dataclass
+class OCPRows:
+    """Row order and signs that put ``[A; G]`` into HPIPM's optimal-control layout.
+
+    HPIPM (through CasADi) wants the variables ordered ``[x_0 u_0 x_1 u_1 ... x_N]`` and the
+    rows ordered ``[gap_0 lincon_0 gap_1 lincon_1 ... lincon_N]`` where a gap row of stage
+    ``k`` reads ``A_k x_k + B_k u_k - x_{k+1} = -b`` (coefficient exactly ``-1`` on one
+    component of ``x_{k+1}``, each component once) and a lincon row touches stage ``k`` only.
+    Row ``i`` of the permuted matrix is ``signs[i]`` times row ``order[i]`` of ``[A; G]``.
+    """
+
+    order: np.ndarray
+    signs: np.ndarray
+    nx: list[int]
+    nu: list[int]
+    ng: list[int]
+
+    def apply(self, form: TwoSidedForm) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
+        """Permuted and scaled ``(matrix, lower, upper)``."""
+        matrix = sp.csc_matrix(sp.diags(self.signs) @ form.matrix[self.order])
+        lower, upper = form.lower[self.order], form.upper[self.order]
+        flip = self.signs < 0
+        lower, upper = (np.where(flip, -upper, lower) * np.abs(self.signs),
+                        np.where(flip, -lower, upper) * np.abs(self.signs))
+        return matrix, lower, upper
+
+    def restore(self, duals: np.ndarray) -> np.ndarray:
+        """Multiplier of the original rows from that of the permuted rows."""
+        original = np.zeros(self.order.size)
+        original[self.order] = self.signs * np.asarray(duals, dtype=float).ravel()
+        return original
+
+    def permute(self, duals: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`restore` (warm starts)."""
+        permuted: np.ndarray = np.asarray(duals, dtype=float)[self.order] / self.signs
+        return permuted
+
+    @classmethod
+    def one_stage(cls, form: TwoSidedForm) -> OCPRows:
+        """No structure: every variable a state of stage 0, every row a lincon row."""
+        rows = form.n_rows
+        return cls(np.arange(rows), np.ones(rows), [form.n], [0], [rows])
+
+    @classmethod
+    def detect(cls, problem: Problem, form: TwoSidedForm) -> OCPRows | None:
+        """The layout of a horizon problem (``meta["layout"]``), or ``None`` when the rows
+        do not fit it (a row spanning non-adjacent stages, a gap that is no identity...)."""
+        from c3bench.problems.mpc import HorizonLayout
+
+        table = problem.meta.get("layout") if isinstance(problem.meta, dict) else None
+        if not table:
+            return None
+        try:
+            layout = HorizonLayout.from_json(table)
+            if layout.offset("x") != 0 or layout.size != problem.n:
+                return None
+        except (KeyError, TypeError, ValueError):
+            return None
+        T, nx, step = layout.horizon, layout.nx, layout.step_size
+        matrix = sp.csr_matrix(form.matrix)
+        gaps: list[list[tuple[int, int, float]]] = [[] for _ in range(T + 1)]
+        lincon: list[list[int]] = [[] for _ in range(T + 1)]
+        for row in range(matrix.shape[0]):
+            columns = matrix.indices[matrix.indptr[row]:matrix.indptr[row + 1]]
+            values = matrix.data[matrix.indptr[row]:matrix.indptr[row + 1]]
+            nonzero = values != 0
+            columns, values = columns[nonzero], values[nonzero]
+            stages = np.minimum(columns // step, T)
+            first = int(stages.min()) if stages.size else 0
+            if np.all(stages == first):
+                lincon[first].append(row)
+                continue
+            later = stages == first + 1
+            is_equality = form.lower[row] == form.upper[row]
+            if (not is_equality or not np.all(stages[~later] == first)
+                    or int(later.sum()) != 1):
+                return None
+            column = int(columns[later][0])
+            if column - (first + 1) * step >= nx:
+                return None  # the next stage enters through something other than its x
+            gaps[first].append((column, row, -1.0 / float(values[later][0])))
+        order: list[int] = []
+        signs: list[float] = []
+        for k in range(T + 1):
+            if k < T:
+                columns_k = sorted(item[0] for item in gaps[k])
+                if columns_k != list(range((k + 1) * step, (k + 1) * step + nx)):
+                    return None
+            for _, row, sign in sorted(gaps[k]):
+                order.append(row)
+                signs.append(sign)
+            order.extend(lincon[k])
+            signs.extend([1.0] * len(lincon[k]))
+        return cls(np.asarray(order, dtype=np.int64), np.asarray(signs), [nx] * (T + 1),
+                   [step - nx] * T + [0], [len(rows) for rows in lincon])
+
+
+class CasadiConicBackend(QPBackend):
+    """``casadi.conic`` (Andersson et al. 2019) with ``lba <= [A; G] z <= uba`` and native
+    bounds ``lbx <= z <= ubx``; the plugin is qpOASES (Ferreau et al. 2014) or HPIPM (Frison
+    and Diehl 2020).
+
+    CasADi's multipliers satisfy ``H z + g + A^T lam_a + lam_x = 0`` with ``lam > 0`` at an
+    active upper side, i.e. qpsolvers' signs. For HPIPM the rows are reordered into the
+    optimal-control layout of :class:`OCPRows` when the problem carries a horizon layout
+    (the ``c3plus_qp`` / ``c3_qp`` families), and given as one stage otherwise; the
+    ``diagnostics`` entry ``ocp_stages`` says which (``N + 1``).
+    """
+
+    package = "casadi"
+
+    def __init__(self, plugin: str, description: str) -> None:
+        self.plugin = plugin
+        self.name = f"casadi_{plugin}"
+        self.description = description
+
+    def require(self) -> None:
+        """CasADi imports and loads the conic plugin."""
+        casadi = require_module("casadi")
+        try:
+            present = bool(casadi.has_conic(self.plugin))
+        except Exception as error:  # plugin loading may raise anything
+            raise BackendUnavailable(
+                f"CasADi cannot load plugin {self.plugin!r}: {error}") from error
+        if not present:
+            raise BackendUnavailable(f"CasADi has no conic plugin {self.plugin!r}")
+
+    def options(self, settings: Settings, rows: OCPRows | None,
+                warm: bool = False) -> dict[str, Any]:
+        """Options of ``casadi.conic`` for the profile (``rows``: HPIPM's stage layout;
+        ``warm``: a warm start is given)."""
+        options: dict[str, Any] = {"error_on_fail": False, "verbose": False}
+        if self.plugin == "qpoases":
+            options.update(printLevel="none", CPUtime=float(settings.time_limit),
+                           enableEqualities=True)
+            if settings.sets_tolerance:
+                options["terminationTolerance"] = settings.tolerance
+            if settings.max_iterations is not None:
+                options["nWSR"] = int(settings.max_iterations)
+        elif self.plugin == "hpipm" and rows is not None:
+            options["inf"] = HPIPM_INFINITY
+            hpipm: dict[str, Any] = {"mode": "robust"}
+            if settings.sets_tolerance:
+                hpipm.update({key: settings.tolerance for key in
+                              ("res_g_max", "res_b_max", "res_d_max", "res_m_max")})
+            if settings.max_iterations is not None:
+                hpipm["iter_max"] = int(settings.max_iterations)
+            if warm:
+                hpipm["warm_start"] = 1
+            options.update(N=len(rows.nx) - 1, nx=rows.nx, nu=rows.nu, ng=rows.ng,
+                           hpipm=hpipm)
+        options.update(settings.options)
+        return options
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        """Build the conic solver (quietly: qpOASES prints a banner) and solve once."""
+        import casadi
+
+        watch = Stopwatch()
+        with watch.lap("build"):
+            form = TwoSidedForm.from_problem(problem, bounds_as_rows=False)
+            rows = None
+            if self.plugin == "hpipm":
+                rows = OCPRows.detect(problem, form) or OCPRows.one_stage(form)
+                matrix, lower, upper = rows.apply(form)
+            else:
+                matrix, lower, upper = form.matrix, form.lower, form.upper
+            H = casadi.DM(sp.csc_matrix(problem.P))
+            M = casadi.DM(matrix)
+            arguments: dict[str, Any] = {
+                "h": H, "g": problem.q, "a": M, "lba": lower, "uba": upper,
+                "lbx": form.lb, "ubx": form.ub}
+            warm = warm_start is not None and warm_start.x is not None
+            if warm:
+                assert warm_start is not None
+                lam_a0 = form.stack_duals(warm_start.y, warm_start.z, None)
+                arguments["x0"] = np.asarray(warm_start.x, dtype=float)
+                arguments["lam_a0"] = lam_a0 if rows is None else rows.permute(lam_a0)
+            with quiet_stdout():
+                solver = casadi.conic("qp", self.plugin, {"h": H.sparsity(),
+                                                          "a": M.sparsity()},
+                                      self.options(settings, rows, warm))
+        with watch.lap("solve"):
+            output = solver(**arguments)
+        stats = solver.stats()
+        found = bool(stats.get("success", False))
+        status = str(stats.get("return_status", stats.get("unified_return_status", "")))
+        if self.plugin == "hpipm":
+            status = f"{status} ({HPIPM_STATUS.get(status, 'unknown code')})"
+        elif not found and "unified_return_status" in stats:
+            status = f"{status} ({stats['unified_return_status']})"
+        lam_a = np.asarray(output["lam_a"]).ravel()
+        duals = form.split_duals(lam_a if rows is None else rows.restore(lam_a),
+                                 np.asarray(output["lam_x"]).ravel())
+        iterations = stats.get("iter_count")
+        diagnostics = {} if rows is None else {"ocp_stages": float(len(rows.nx))}
+        x = np.asarray(output["x"]).ravel()
+        if found and rows is not None:
+            infinity = float(self.options(settings, rows, warm).get("inf", HPIPM_INFINITY))
+            values = np.concatenate([x, matrix @ x])
+            open_side = np.concatenate([~(np.isfinite(form.lb) & np.isfinite(form.ub)),
+                                        ~(np.isfinite(lower) & np.isfinite(upper))])
+            reach = float(np.max(np.abs(values[open_side]), initial=0.0))
+            if reach >= 0.5 * infinity:
+                found = False
+                status = (f"{status}; solution reaches {reach:.3g}, near the finite stand-in "
+                          f"{infinity:.3g} for infinite bounds")
+        return qp_result(self.name, problem, watch, found=found, status=status,
+                         failure=failure_category(status), x=x, duals=duals,
+                         iterations=None if iterations is None else int(iterations),
+                         diagnostics=diagnostics)
+
+
+register(CasadiConicBackend("qpoases", "qpOASES online active set (CasADi conic interface)"))
+register(CasadiConicBackend("hpipm",
+                            "HPIPM interior point (CasADi conic interface, OCP stages)"))

@@ -1,0 +1,109 @@
+"""``proxqp_dense``, ``proxqp_sparse``: ProxQP (proxsuite), a proximal augmented Lagrangian.
+
+The problem goes to ProxQP as equalities ``A z = b`` and two-sided rows
+``l <= [G; I_S] z <= u`` (the ``C`` matrix; bounds as rows, :class:`TwoSidedForm`), dense
+(``proxqp.dense``) or sparse (``proxqp.sparse``). The multipliers ``y`` of ``A`` and ``z`` of
+``C`` have qpsolvers' signs and split into ``y``, ``z`` and ``z_box``.
+
+Options: ``verbose`` off; in non-default profiles ``eps_abs = tolerance``, ``eps_rel = 0`` and
+the duality gap checked with ``eps_duality_gap_abs = tolerance`` (``_rel = 0``); ``max_iter``
+from ``settings.max_iterations``; ``settings.options`` last (attributes of ``qp.settings``).
+ProxQP takes no time limit here: the registry enforces it. A warm start sets ``x``, ``y`` and
+``z`` (``InitialGuess.WARM_START``).
+
+References
+----------
+A. Bambade, S. El-Kazdadi, A. Taylor and J. Carpentier, "PROX-QP: Yet another Quadratic
+Programming Solver for Robotics and beyond", Robotics: Science and Systems (RSS), 2022.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from c3bench.problems.instance import Problem
+from c3bench.solvers.backends._qp_forms import (
+    QPBackend,
+    TwoSidedForm,
+    failure_category,
+    qp_result,
+)
+from c3bench.solvers.base import Result, Settings, WarmStart
+from c3bench.solvers.registry import register
+from c3bench.solvers.timing import Stopwatch
+
+
+class ProxQPBackend(QPBackend):
+    """ProxQP (Bambade et al. 2022) with ``l <= [G; I_S] z <= u`` as ``C`` rows."""
+
+    package = "proxsuite"
+
+    def __init__(self, sparse: bool) -> None:
+        self.sparse = sparse
+        self.name = "proxqp_sparse" if sparse else "proxqp_dense"
+        self.description = (f"ProxQP proximal augmented Lagrangian (proxsuite, "
+                            f"{'sparse' if sparse else 'dense'} backend)")
+
+    def configure(self, qp: Any, settings: Settings) -> None:
+        """Set ProxQP's options for the profile on ``qp.settings`` (module docstring)."""
+        qp.settings.verbose = False
+        if settings.sets_tolerance:
+            qp.settings.eps_abs = settings.tolerance
+            qp.settings.eps_rel = 0.0
+            qp.settings.check_duality_gap = True
+            qp.settings.eps_duality_gap_abs = settings.tolerance
+            qp.settings.eps_duality_gap_rel = 0.0
+        if settings.max_iterations is not None:
+            qp.settings.max_iter = int(settings.max_iterations)
+        for key, value in settings.options.items():
+            setattr(qp.settings, key, value)
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        """Initialise a dense or sparse ProxQP model and solve it once."""
+        from proxsuite import proxqp
+
+        watch = Stopwatch()
+        with watch.lap("build"):
+            form = TwoSidedForm.from_problem(problem)
+            eq, ineq = form.rows("eq"), form.rows("ineq")
+            n_in = form.n_rows - form.n_eq
+            module = proxqp.sparse if self.sparse else proxqp.dense
+            qp = module.QP(form.n, form.n_eq, n_in)
+            self.configure(qp, settings)
+            if self.sparse:
+                H: Any = sp.csc_matrix(problem.P)
+                A_eq: Any = form.matrix[eq]
+                C: Any = form.matrix[ineq]
+            else:
+                H, A_eq, C = problem.P, form.matrix[eq].toarray(), form.matrix[ineq].toarray()
+            warm = warm_start is not None and warm_start.x is not None
+            if warm:
+                qp.settings.initial_guess = proxqp.InitialGuess.WARM_START
+            qp.init(H, problem.q, A_eq if form.n_eq else None,
+                    form.lower[eq] if form.n_eq else None, C if n_in else None,
+                    form.lower[ineq] if n_in else None, form.upper[ineq] if n_in else None)
+        with watch.lap("solve"):
+            if warm_start is not None and warm_start.x is not None:
+                stacked = form.stack_duals(warm_start.y, warm_start.z, None)
+                qp.solve(np.asarray(warm_start.x, dtype=float), stacked[eq], stacked[ineq])
+            else:
+                qp.solve()
+        results = qp.results
+        info = results.info
+        status = str(info.status).split(".")[-1]
+        found = info.status == proxqp.QPSolverOutput.PROXQP_SOLVED
+        duals = form.split_duals(np.concatenate([np.asarray(results.y).ravel(),
+                                                 np.asarray(results.z).ravel()]))
+        return qp_result(self.name, problem, watch, found=found, status=status,
+                         failure=failure_category(status.replace("_", " ")), x=results.x,
+                         duals=duals, iterations=info.iter,
+                         diagnostics={"solver_primal_residual": float(info.pri_res),
+                                      "solver_dual_residual": float(info.dua_res)})
+
+
+register(ProxQPBackend(sparse=False))
+register(ProxQPBackend(sparse=True))

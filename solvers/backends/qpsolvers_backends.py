@@ -1,0 +1,237 @@
+"""Solvers driven through qpsolvers' ``solve_problem``: DAQP, PIQP, HiGHS, quadprog, SCS, QPALM.
+
+qpsolvers (Caron et al. 2024) converts the problem to each solver's own form and returns
+``x`` with qpsolvers' duals ``y``, ``z`` and ``z_box`` (the convention of the whole
+benchmark); missing dual blocks become zeros of the right size. How each solver is driven
+(:data:`QPSOLVERS_SPECS`; ``tol`` = ``settings.tolerance``, set in non-default profiles only;
+``settings.options`` are passed last, so they win):
+
+============  =============================================================================
+``daqp``      ``primal_tol = dual_tol = tol``, ``iter_limit``.
+``piqp``      dense backend; ``eps_abs = eps_rel = tol``,
+              ``eps_duality_gap_abs = eps_duality_gap_rel = tol``, ``max_iter``.
+``highs``     ``primal_ / dual_feasibility_tolerance = tol``, ``time_limit``,
+              ``qp_iteration_limit``; HiGHS' banner (printed on its first construction in a
+              process) is absorbed once, quietly.
+``quadprog``  no tolerance option; needs ``P`` positive definite and reports the
+              ``ValueError`` it raises otherwise as a failure.
+``scs``       ``eps_abs = eps_rel = tol``, ``max_iters``, ``time_limit_secs``.
+``qpalm``     ``eps_abs = eps_rel = tol``, ``max_iter``, ``time_limit``.
+============  =============================================================================
+
+DAQP, PIQP and quadprog take no time limit here; the registry enforces it. ``found`` is
+qpsolvers' verdict; the status is the solver's own where qpsolvers keeps it.
+``build_time`` includes qpsolvers' conversion (the call's time minus the solver's own
+``solve_time`` where qpsolvers reports it).
+
+References
+----------
+S. Caron et al., "qpsolvers: Quadratic Programming Solvers in Python", software, version 4,
+2024.
+
+D. Arnström, A. Bemporad and D. Axehill, "A dual active-set solver for embedded quadratic
+programming using recursive LDL^T updates", IEEE Transactions on Automatic Control 67(8),
+4362-4369, 2022 (DAQP).
+
+R. Schwan, Y. Jiang, D. Kuhn and C. N. Jones, "PIQP: A Proximal Interior-Point Quadratic
+Programming Solver", IEEE Conference on Decision and Control (CDC), 2023.
+
+Q. Huangfu and J. A. J. Hall, "Parallelizing the dual revised simplex method", Mathematical
+Programming Computation 10(1), 119-142, 2018 (HiGHS).
+
+D. Goldfarb and A. Idnani, "A numerically stable dual method for solving strictly convex
+quadratic programs", Mathematical Programming 27(1), 1-33, 1983 (quadprog).
+
+B. O'Donoghue, "Operator splitting for a homogeneous embedding of the linear complementarity
+problem", SIAM Journal on Optimization 31(3), 1999-2023, 2021 (SCS 3).
+
+B. Hermans, A. Themelis and P. Patrinos, "QPALM: a proximal augmented Lagrangian method for
+nonconvex quadratic programs", Mathematical Programming Computation 14, 497-541, 2022.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from c3bench.problems.errors import BackendUnavailable
+from c3bench.problems.instance import Problem
+from c3bench.problems.names import Failure
+from c3bench.solvers.backends._qp_forms import QPBackend, failure_category, qp_result
+from c3bench.solvers.base import Result, Settings, WarmStart, require_module
+from c3bench.solvers.output import quiet_stdout
+from c3bench.solvers.registry import register
+from c3bench.solvers.timing import Stopwatch
+
+
+@dataclass(frozen=True)
+class _QpsolversSpec:
+    """How one qpsolvers solver is driven.
+
+    Attributes
+    ----------
+    solver
+        qpsolvers' name.
+    module
+        Import name of the solver's package (for availability and version).
+    tolerance_options
+        Option names set to ``settings.tolerance`` in non-default profiles.
+    iteration_option, time_option
+        Option names of the iteration cap and the time limit (``""``: none).
+    fixed
+        Options always passed.
+    description
+        One line for the registry table.
+    """
+
+    solver: str
+    module: str
+    tolerance_options: tuple[str, ...]
+    iteration_option: str
+    time_option: str
+    fixed: tuple[tuple[str, Any], ...]
+    description: str
+
+
+QPSOLVERS_SPECS: tuple[_QpsolversSpec, ...] = (
+    _QpsolversSpec("daqp", "daqp", ("primal_tol", "dual_tol"), "iter_limit", "", (),
+                   "DAQP dual active set (via qpsolvers)"),
+    _QpsolversSpec("piqp", "piqp", ("eps_abs", "eps_rel", "eps_duality_gap_abs",
+                                    "eps_duality_gap_rel"), "max_iter", "",
+                   (("backend", "dense"),), "PIQP proximal interior point (via qpsolvers, dense)"),
+    _QpsolversSpec("highs", "highspy", ("primal_feasibility_tolerance",
+                                        "dual_feasibility_tolerance"),
+                   "qp_iteration_limit", "time_limit", (),
+                   "HiGHS active-set QP (via qpsolvers)"),
+    _QpsolversSpec("quadprog", "quadprog", (), "", "", (),
+                   "quadprog Goldfarb-Idnani dual active set (via qpsolvers; P must be PD)"),
+    _QpsolversSpec("scs", "scs", ("eps_abs", "eps_rel"), "max_iters", "time_limit_secs", (),
+                   "SCS conic ADMM (via qpsolvers)"),
+    _QpsolversSpec("qpalm", "qpalm", ("eps_abs", "eps_rel"), "max_iter", "time_limit", (),
+                   "QPALM proximal augmented Lagrangian (via qpsolvers)"),
+)
+
+
+def _qpsolvers_iterations(solver: str, extras: dict[str, Any]) -> int | None:
+    """Iteration count from a qpsolvers ``Solution.extras`` (``None`` where not kept)."""
+    try:
+        if solver in ("piqp", "qpalm"):
+            return int(extras["info"].iter)
+        if solver == "scs":
+            return int(extras["iter"])
+        if solver == "quadprog":
+            return int(np.ravel(extras["iterations"])[0])
+    except (KeyError, AttributeError, TypeError, IndexError):
+        return None
+    return None
+
+
+def _qpsolvers_status(solver: str, found: bool, extras: dict[str, Any]) -> str:
+    """The solver's own status text where qpsolvers keeps it."""
+    try:
+        if solver in ("piqp", "qpalm"):
+            return str(extras["info"].status).split(".")[-1]
+        if solver == "scs":
+            return str(extras["status"])
+    except (KeyError, AttributeError, TypeError):
+        pass
+    return "solved" if found else "not solved (no status kept by qpsolvers)"
+
+
+class QpsolversBackend(QPBackend):
+    """One solver driven through ``qpsolvers.solve_problem`` (Caron et al. 2024; see
+    :data:`QPSOLVERS_SPECS` and the module docstring for each solver's reference)."""
+
+    def __init__(self, spec: _QpsolversSpec) -> None:
+        self.spec = spec
+        self.name = spec.solver
+        self.package = spec.module
+        self.description = spec.description
+
+    def require(self) -> None:
+        """The solver's package and qpsolvers import, and qpsolvers lists the solver."""
+        super().require()
+        qpsolvers = require_module("qpsolvers")
+        if self.spec.solver not in qpsolvers.available_solvers:
+            raise BackendUnavailable(
+                f"qpsolvers does not list {self.spec.solver!r} as available")
+
+    def options(self, settings: Settings) -> dict[str, Any]:
+        """Keyword options for ``qpsolvers.solve_problem``."""
+        options: dict[str, Any] = dict(self.spec.fixed)
+        if settings.sets_tolerance:
+            options.update({key: settings.tolerance for key in self.spec.tolerance_options})
+        if self.spec.time_option:
+            options[self.spec.time_option] = float(settings.time_limit)
+        if self.spec.iteration_option and settings.max_iterations is not None:
+            options[self.spec.iteration_option] = int(settings.max_iterations)
+        options.update(settings.options)
+        return options
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        """One ``qpsolvers.solve_problem`` call; its ``QPError`` / ``ValueError`` (e.g.
+        quadprog on a singular ``P``) is a recorded failure."""
+        import warnings
+
+        import qpsolvers
+
+        if self.spec.solver == "highs":
+            _absorb_highs_banner()
+        watch = Stopwatch()
+        with watch.lap("build"):
+            qp = qpsolvers.Problem(problem.P, problem.q, problem.G, problem.h, problem.A,
+                                   problem.b, problem.lb, problem.ub)
+            initvals = None
+            if warm_start is not None and warm_start.x is not None:
+                initvals = np.asarray(warm_start.x, dtype=float)
+            options = self.options(settings)
+        try:
+            with watch.lap("call"), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                solution = qpsolvers.solve_problem(qp, solver=self.spec.solver,
+                                                   initvals=initvals, **options)
+        except (qpsolvers.QPError, ValueError) as error:
+            return qp_result(self.name, problem, watch, found=False,
+                             status=f"{type(error).__name__}: {error}",
+                             failure=Failure.ERROR, x=None, duals=None, iterations=None,
+                             build_time=watch.get("build") + watch.get("call"),
+                             solve_time=0.0)
+        inner_solve = float(getattr(solution, "solve_time", float("nan")))
+        if not np.isfinite(inner_solve) or inner_solve > watch.get("call"):
+            inner_solve = watch.get("call")
+        extras = solution.extras if isinstance(solution.extras, dict) else {}
+        found = bool(solution.found)
+        status = _qpsolvers_status(self.spec.solver, found, extras)
+        duals = None
+        if solution.x is not None:
+            duals = (_sized(solution.y, problem.n_eq), _sized(solution.z, problem.n_ineq),
+                     _sized(solution.z_box, problem.n))
+        return qp_result(self.name, problem, watch, found=found, status=status,
+                         failure=failure_category(status), x=solution.x, duals=duals,
+                         iterations=_qpsolvers_iterations(self.spec.solver, extras),
+                         build_time=watch.get("build") + watch.get("call") - inner_solve,
+                         solve_time=inner_solve)
+
+
+@functools.cache
+def _absorb_highs_banner() -> None:
+    """HiGHS prints a banner on its first construction in a process: take it here, quietly."""
+    with quiet_stdout():
+        importlib.import_module("highspy").Highs()
+
+
+def _sized(vector: Any, size: int) -> np.ndarray:
+    """qpsolvers' dual block, or zeros when it left it empty/``None`` for an absent block."""
+    if vector is None:
+        return np.zeros(size)
+    array = np.asarray(vector, dtype=float).ravel()
+    return array if array.size == size else np.zeros(size) if array.size == 0 else array
+
+
+for _spec in QPSOLVERS_SPECS:
+    register(QpsolversBackend(_spec))
