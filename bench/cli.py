@@ -49,7 +49,7 @@ from c3bench.problems.names import Family, Precision, Profile, Start, Variant
 
 CAPTURE_QP_BACKEND = "clarabel"
 """QP solver of the controller runs whose iterates become suite instances (exact and
-deterministic; the seed's equilibrated method with its ridge is not exact)."""
+deterministic; the reference study's equilibrated method with its ridge is not exact)."""
 
 
 def load_plugins(entries: Sequence[str]) -> None:
@@ -67,7 +67,7 @@ def load_plugins(entries: Sequence[str]) -> None:
 def capture_for(name: str) -> Capture | None:
     """The ADMM-iterate source behind the QP and projection families.
 
-    ``controller`` (default): real C3+ runs (the seed's schedule, 10 iterations) at each
+    ``controller`` (default): real C3+ runs (the reference study's schedule, 10 iterations) at each
     sampled state; ``provisional``: the documented deterministic stand-in (``None``).
     """
     if name == "provisional":

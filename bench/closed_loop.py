@@ -288,7 +288,7 @@ class ControllerSpec:
     qp_backend, projection
         Registry names of the QP-step solver and of C3's MIQP projection.
     rho_schedule
-        ``geometric`` (the seed's), ``adaptive`` or ``residual_balancing``.
+        ``geometric`` (the reference study's), ``adaptive`` or ``residual_balancing``.
     admm_iterations
         ADMM iterations per control step (seed: 10).
     model_l
@@ -301,12 +301,12 @@ class ControllerSpec:
     seed
         Seed of the sampled sides.
     feedback, feedback_kp, feedback_kd
-        Low-level feedback between control steps (the seed's "low-level PD controller"):
+        Low-level feedback between control steps (the reference study's "low-level PD controller"):
         at every plant step ``u = u_0 + kp (p_ref - p) + kd (v_ref - v)`` on the ball, where
         ``p_ref`` moves linearly from the measured ball position to the plan's ``x_1`` over
         ``dt`` and ``v_ref`` is the plan's ``x_1`` ball velocity (weighted over samples).
-        Without it ``u_0`` is held for ``dt`` (zero-order hold). The seed's optimised gain
-        ``K`` regularised toward a PD law is not implemented.
+        Without it ``u_0`` is held for ``dt`` (zero-order hold). The reference study's optimised
+        gain ``K`` regularised toward a PD law is not implemented.
     """
 
     controller: str = "c3plus"

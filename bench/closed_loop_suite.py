@@ -10,10 +10,10 @@ written atomically to ``<results>/closed_loop/<suite>/cells/<case>/`` (``summary
 
 Suites (:data:`CLOSED_LOOP_SUITES`):
 
-* ``quick``: C3+ with each of four QP backends (the seed's setting: shrunk model ``l = 0.29``,
-  geometric rho, 10 ADMM iterations) and with the true-size model, the robust variant with 16
-  samples (``l ~ U[0.27, 0.33]``) as one stacked QP with and without LCP weighting, and the
-  seed's ablation (:func:`seed_ablation`) on the fast path;
+* ``quick``: C3+ with each of four QP backends (the reference study's setting: shrunk model ``l =
+  0.29``, geometric rho, 10 ADMM iterations) and with the true-size model, the robust variant with
+  16 samples (``l ~ U[0.27, 0.33]``) as one stacked QP with and without LCP weighting, and the
+  reference study's ablation (:func:`reference_ablation`) on the fast path;
 * ``full``: ``quick`` over seeds 0-2, plus C3 with its MIQP projection and more QP backends.
 
 The sweep (:func:`sweep_cases`) crosses ``dt`` x rho schedule x ``Q_box`` x model ``l`` for C3+
@@ -118,8 +118,8 @@ FULL_BACKENDS: tuple[str, ...] = (*QUICK_BACKENDS, "proxqp_sparse", "daqp", "kkt
                                   "casadi_hpipm")
 
 
-def seed_ablation() -> list[tuple[str, ControllerSpec]]:
-    """The seed's ablation (its bar plot): the full robust method and one part removed each.
+def reference_ablation() -> list[tuple[str, ControllerSpec]]:
+    """The reference study's ablation (its bar plot): the full method, one part removed each.
 
     Full: robust C3+ (16 samples ``l ~ U[0.27, 0.33]``, LCP-error weighting) with low-level
     feedback, on the fast path. Removed in turn: feedback, the samples (one model, the shrunk
@@ -153,7 +153,7 @@ def _suite_cases(backends: Sequence[str], seeds: Sequence[int], with_c3: bool) -
         ):
             name = spec.label() + ("-uniform" if not spec.weighting else "") + tag
             cases.append(Case(name, group, spec, seed=seed))
-        for label, spec in seed_ablation():
+        for label, spec in reference_ablation():
             cases.append(Case(f"ablation-{label}{tag}", "ablation", spec, seed=seed))
         if with_c3:
             for projection in ("gurobi", "scip"):
@@ -174,7 +174,8 @@ def sweep_cases(dts: Sequence[float] = SWEEP_DTS,
                 q_boxes: Sequence[float] = SWEEP_Q_BOXES,
                 model_ls: Sequence[float] = SWEEP_MODEL_LS,
                 backend: str = "clarabel") -> list[Case]:
-    """C3+ over the grid ``dt x rho schedule x Q_box x model l`` (the seed's hand-drawn map)."""
+    """C3+ over the grid ``dt x rho schedule x Q_box x model l`` (the reference study's
+    hand-drawn map)."""
     cases = []
     for dt, schedule, q_box, side in itertools.product(dts, schedules, q_boxes, model_ls):
         spec = _c3plus(backend, rho_schedule=schedule, model_l=side)
@@ -414,8 +415,8 @@ def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
              f"{target} rad, success when |theta - theta*| <= "
              f"{config.mpc.success_tolerance} rad at the end and the pivot did not slip. "
              "Control-step times are wall-clock on this machine (2 cores, one BLAS thread), "
-             "LCS build included; the seed reported 0.06 s per step (control period 0.05 s).",
-             ""]
+             "LCS build included; the reference study reported 0.06 s per step "
+             "(control period 0.05 s).", ""]
     columns = ["case", "success", "angle_error", "final_angle", "failure_mode",
                "failure_label", "median_step_time", "p95_step_time", "median_lcs_time",
                "fallback_count", "nan_count"]
@@ -448,8 +449,8 @@ def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
                   "*Cube angle (rad) against time (s) for every run; dashed: the target.*", "",
                   "![times](figures/closed_loop_step_time.png)", "",
                   "*Control-step wall time (ms, log scale) per run: LCS build plus the "
-                  "controller's ADMM; dashed lines: the seed's 60 ms and the 50 ms period.*",
-                  ""]
+                  "controller's ADMM; dashed lines: the reference study's 60 ms and the "
+                  "50 ms period.*", ""]
     if render:
         lines += _animation_section(directory, valid, config)
     path = directory / "report.md"

@@ -4,9 +4,10 @@
 ``time.process_time`` beside it): the LCS build for all ``n`` samples at a state along the
 scripted push (:func:`problems.suites.scripted_push`, states in the contact band, visited in
 order, the controller warm-started from the previous step as in closed loop) plus
-``iterations`` ADMM iterations (default 10, geometric rho schedule, the seed's rho0), horizon
-``T`` of the task config (7), planar scene. Samples have cube sides ``l_j ~ U[0.27, 0.33]``
-(seeded; ``n = 1`` uses the seed's model side 0.29) with uniform weights and shared inputs.
+``iterations`` ADMM iterations (default 10, geometric rho schedule, the reference study's rho0),
+horizon ``T`` of the task config (7), planar scene. Samples have cube sides ``l_j ~ U[0.27, 0.33]``
+(seeded; ``n = 1`` uses the reference study's model side 0.29) with uniform weights and shared
+inputs.
 
 **Backends**
 
@@ -37,8 +38,8 @@ intra-op thread: its CPU time then exceeds the wall time).
 ``perf.parquet`` and ``perf.csv``, one row per timed control step (plus one row per skipped
 configuration), columns :data:`bench.store.PERF_SCHEMA`; and
 ``figures/perf_time_vs_samples.png`` (:func:`bench.plots.plot_perf`): median control-step time
-against the number of samples (log-log, p95 as error bars), with the seed's 60 ms and the 6 ms
-target. :func:`bench.report.perf_report_section` renders the summary for the report.
+against the number of samples (log-log, p95 as error bars), with the reference study's 60 ms and
+the 6 ms target. :func:`bench.report.perf_report_section` renders the summary for the report.
 """
 
 from __future__ import annotations
@@ -64,8 +65,8 @@ from c3bench.problems.names import Precision
 BACKENDS: tuple[str, ...] = ("c3plus-riccati", "c3plus-jax", "c3-osqp", "c3-clarabel")
 REFERENCE_BACKENDS: dict[str, str] = {"c3-osqp": "osqp", "c3-clarabel": "clarabel"}
 REFERENCE_SAMPLES: tuple[int, ...] = (1, 16)
-SEED_STEP_MS = 60.0
-"""The seed's control step (0.06 s with 16 samples, float32, including the LCS build)."""
+REFERENCE_STEP_MS = 60.0
+"""The reference study's control step (0.06 s with 16 samples, float32, including the LCS build)."""
 TARGET_STEP_MS = 6.0
 """The issue's target for 16 samples on one core."""
 DEVICES: tuple[str, ...] = ("cpu", "gpu")

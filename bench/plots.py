@@ -22,7 +22,7 @@ import pandas as pd
 
 from c3bench.bench import store
 from c3bench.bench.metrics import performance_profile, performance_ratios
-from c3bench.bench.perf import SEED_STEP_MS, TARGET_STEP_MS, summarize
+from c3bench.bench.perf import REFERENCE_STEP_MS, TARGET_STEP_MS, summarize
 from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, Precision, Profile, Start
 
 DPI = 110
@@ -390,7 +390,7 @@ def plot_perf(frame: pd.DataFrame, path: Path) -> Path | None:
     """Log-log median control-step time vs samples (p95 as error bars); ``None`` when empty.
 
     ``frame`` holds the rows of ``c3bench perf`` (:data:`bench.store.PERF_SCHEMA`); the
-    seed's step time and the target are drawn as horizontal lines.
+    reference study's step time and the target are drawn as horizontal lines.
     """
     summary = summarize(frame)
     summary = summary[summary["repeats"] > 0]
@@ -404,8 +404,8 @@ def plot_perf(frame: pd.DataFrame, path: Path) -> Path | None:
         upper = group["p95_ms"].to_numpy(dtype=float) - medians
         axes.errorbar(group["samples"], medians, yerr=[np.zeros_like(upper), upper],
                       marker="o", capsize=3, label=f"{backend} ({precision}, {device})")
-    axes.axhline(SEED_STEP_MS, color="grey", linestyle="--", linewidth=1,
-                 label=f"seed: {SEED_STEP_MS:g} ms (16 samples)")
+    axes.axhline(REFERENCE_STEP_MS, color="grey", linestyle="--", linewidth=1,
+                 label=f"seed: {REFERENCE_STEP_MS:g} ms (16 samples)")
     axes.axhline(TARGET_STEP_MS, color="grey", linestyle=":", linewidth=1,
                  label=f"target: {TARGET_STEP_MS:g} ms (16 samples)")
     axes.set_xscale("log", base=2)

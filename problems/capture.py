@@ -7,7 +7,7 @@ instances of every family. The ADMM iterates ``(delta, w)`` behind ``c3plus_qp``
 controller's capture is :func:`c3bench.solvers.c3.controller_capture`; without one the
 deterministic :func:`provisional_capture` is used (metadata ``"capture": "provisional"``).
 
-The rho schedule is always the reference study's (:func:`seed_rho`): ``rho_x = 1``,
+The rho schedule is always the reference study's (:func:`reference_rho`): ``rho_x = 1``,
 ``rho_u = 0.1``, ``rho_lam = rho_eta = 50 * 2^i`` at ADMM iteration ``i``.
 
 Part of the plant-free core: imports neither MuJoCo nor CasADi (the scene a context carries is
@@ -84,7 +84,7 @@ SUITES: dict[str, SuiteSpec] = {
 """The packaged suites by name."""
 
 
-def seed_rho(iteration: int) -> dict[str, float]:
+def reference_rho(iteration: int) -> dict[str, float]:
     """The reference schedule at ADMM iteration ``iteration``.
 
     :data:`c3bench.problems.names.REFERENCE_RHO0` with the blocks of
@@ -157,7 +157,7 @@ def provisional_capture(context: CaptureContext) -> list[CapturedIterate]:
     """Deterministic stand-in for controller iterates.
 
     ``delta_k = (x0, 0, u_prev, 0)``, ``w = 0``, and for projections a seeded random point
-    (``lam >= 0`` and ``eta`` on the LCS gap); rho from :func:`seed_rho`.
+    (``lam >= 0`` and ``eta`` on the LCS gap); rho from :func:`reference_rho`.
     """
     lcs, spec = context.lcs, context.spec
     layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, context.mpc.horizon)
@@ -177,6 +177,6 @@ def provisional_capture(context: CaptureContext) -> list[CapturedIterate]:
             v[k, u_s] += context.rng.normal(0.0, 1.0, lcs.nu)
             v[k, lam_s] = lam
             v[k, eta_s] = lcs.gap(v[k, x_s], v[k, u_s], lam)
-        out.append(CapturedIterate(i, seed_rho(i), delta, np.zeros_like(delta), v,
+        out.append(CapturedIterate(i, reference_rho(i), delta, np.zeros_like(delta), v,
                                    "provisional"))
     return out

@@ -1,8 +1,8 @@
 """Constants of the cube-tipping task, read from ``cube_tipping.toml``.
 
 The TOML file beside this module is the single place where the physical constants (masses,
-friction coefficients, ball radius, force limits) and the MPC defaults (the seed's dt, T and
-weights) are fixed. :func:`load_config` reads it, or a user's copy, into frozen dataclasses.
+friction coefficients, ball radius, force limits) and the MPC defaults (the reference study's dt, T
+and weights) are fixed. :func:`load_config` reads it, or a user's copy, into frozen dataclasses.
 
 Part of the plant-free core: standard library only (no MuJoCo, no CasADi).
 """
@@ -51,7 +51,7 @@ class SceneConfig:
 
 @dataclass(frozen=True)
 class MPCConfig:
-    """The MPC of docs/mpc.md with the seed's defaults.
+    """The MPC of docs/mpc.md with the reference study's defaults.
 
     Cost: ``sum_{k<T} (x_k - x*)^T Q (x_k - x*) + u_k^T R u_k + (x_T - x*)^T Q_f (x_T - x*)``
     with ``Q_f = terminal_factor * Q``.

@@ -4,7 +4,7 @@
 A cube of side ``l`` rests on a table; a ball end effector, moved by a force command ``u``,
 pushes it. Two variants:
 
-* ``planar`` (default, the seed's setting): cube (x, z, theta) and ball (x, z) joints,
+* ``planar`` (default, the reference study's setting): cube (x, z, theta) and ball (x, z) joints,
   ``nq = nv = 5``, state ``x = (q, v)`` in R^10, input ``u`` in R^2.
   ``q = (cube_x, cube_z, cube_theta, ball_x, ball_z)``; theta is the rotation about +y, so a
   positive angle lifts the near (-x) edge and pivots the cube about its far (+x) bottom edge.

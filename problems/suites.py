@@ -9,13 +9,13 @@ A suite is generated in three steps:
    steps where the ball is within ``contact_band`` of the cube, so the subproblems are
    contact-rich.
 3. **Instances** of every family are built at each sampled state from the controller's model
-   (``model_l``, the seed's shrunk 0.29 cube) linearised at that state.
+   (``model_l``, the reference study's shrunk 0.29 cube) linearised at that state.
 
 The ADMM iterates ``(delta, w)`` behind ``c3plus_qp``/``c3_qp``/``projection`` come from a
 *capture* function (:mod:`c3bench.problems.capture`, which also holds the suite specifications
 :data:`~c3bench.problems.capture.SUITES`). Without one (the default of this module) the
 provisional, deterministic :func:`~c3bench.problems.capture.provisional_capture` is used; its
-metadata says ``"capture": "provisional"``. The rho schedule is always the seed's:
+metadata says ``"capture": "provisional"``. The rho schedule is always the reference study's:
 ``rho_x = 1``, ``rho_u = 0.1``, ``rho_lam = rho_eta = 50 * 2^i`` at ADMM iteration ``i``.
 
 This module runs the plant (MuJoCo); the instance builders it calls

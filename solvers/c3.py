@@ -29,9 +29,9 @@ state has no copy), with the scaled dual ``w`` and the block weights
    ``r = ||z - delta||_2`` and dual residual ``s = ||2 G (delta - delta_prev)||_2``, both over
    every horizon step (weighted over the samples of the robust variant, see below);
 5. **rho update** (``options.rho_schedule``), applied to the blocks ``options.rho_blocks``
-   (default ``lam`` and ``eta``, the seed's):
+   (default ``lam`` and ``eta``, the reference study's):
 
-   * ``geometric``: ``rho <- factor rho`` (factor 2: the seed's ``50 * 2^i``);
+   * ``geometric``: ``rho <- factor rho`` (factor 2: the reference study's ``50 * 2^i``);
    * ``adaptive`` (Bertsekas 2014, section 2.2.5): ``rho <- beta rho`` when
      ``r_i >= gamma r_{i-1}``, unchanged otherwise (and at ``i = 0``);
    * ``residual_balancing`` (Boyd et al. 2011, section 3.4.1): ``rho <- tau rho`` when
@@ -159,7 +159,7 @@ class C3Options:
         Geometric growth factor (seed: 2).
     adaptive_beta, adaptive_gamma
         Bertsekas's ``beta`` (growth) and ``gamma`` (required decrease ratio); defaults
-        ``gamma = 0.25`` and ``beta`` = the seed's factor 2.
+        ``gamma = 0.25`` and ``beta`` = the reference study's factor 2.
     balance_mu, balance_tau
         Residual balancing's ``mu`` and ``tau`` (Boyd et al.: 10 and 2).
     rescale_dual
@@ -868,7 +868,7 @@ def solve_c3(lcs: LCS, mpc: MPC, x0: np.ndarray, options: C3Options | None = Non
     x0
         Measured state.
     options
-        Controller options (defaults: the seed's C3+).
+        Controller options (defaults: the reference study's C3+).
     delta, w
         Initial projection iterate and scaled dual (T x step size of the QP layout); a cold
         start (:func:`cold_start`) when ``None``.

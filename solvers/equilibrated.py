@@ -1,6 +1,7 @@
-"""The seed's equilibrated Schur-complement solve of an equality-constrained QP.
+"""The reference study's equilibrated Schur-complement solve of an equality-constrained QP.
 
-For (the seed's convention, ``Q = P / 2`` and ``c = q`` for a :class:`problems.instance.Problem`)
+For (the reference study's convention, ``Q = P / 2`` and ``c = q`` for a
+:class:`problems.instance.Problem`)
 
     minimise  x^T Q x + c^T x   subject to   A x = b,
 
@@ -23,8 +24,8 @@ The method (seed 000, section 3.2), each step switchable through :class:`Equilib
 7. ``ridge``: ``S <- S + delta I`` with ``delta = ridge * max_i S_ii``. The ridge is *relative*
    to the largest diagonal entry of the matrix being factorised. After step 6 that entry is
    at most 1 (a PSD matrix's largest entry sits on its diagonal, and one Ruiz iteration maps
-   every entry into [-1, 1]), so with the full method it coincides with the seed's absolute
-   ``1e-4``; in ablations without step 6 a relative ridge keeps the same meaning instead of
+   every entry into [-1, 1]), so with the full method it coincides with the reference study's
+   absolute ``1e-4``; in ablations without step 6 a relative ridge keeps the same meaning instead of
    vanishing against entries of ``1e5`` or swamping entries of ``1e-6``. It bounds
    ``cond(S + delta I) <= (lambda_max + delta) / delta <= m (1 + 1/ridge)`` after Ruiz.
 8. Cholesky solve of ``S v = E (-(2 b + A Q^-1 c))``; when it fails and ``cholesky_fallback``
@@ -72,7 +73,7 @@ MAX_FALLBACKS = 10
 
 @dataclass(frozen=True)
 class EquilibrationSteps:
-    """Which steps of the method run (ablation switches); defaults are the seed's method.
+    """Which steps of the method run (ablation switches); defaults are the reference study's method.
 
     Attributes
     ----------
@@ -481,8 +482,8 @@ def solve_equality_qp(Q: np.ndarray, c: np.ndarray, A: np.ndarray, b: np.ndarray
     Parameters
     ----------
     Q, c, A, b
-        Problem data in the seed's convention (for a ``Problem``: ``Q = P / 2``, ``c = q``).
-    steps
+        Problem data in the reference study's convention (for a ``Problem``: ``Q = P / 2``, ``c =
+    q``). steps
         Ablation switches (default: the full method).
     precision
         ``"float64"`` or ``"float32"``: the dtype of all arithmetic of the method.

@@ -49,22 +49,22 @@ rho of all iterations is known before the first one, so :class:`FastC3Plus` fact
 whole schedule in one batched call over (iterations x samples) (``prefactorize``): the same
 arithmetic with a tenth of the numpy calls.
 
-**Conditioning safeguards** (the seed's equilibrated method, section 3.2, in spirit):
+**Conditioning safeguards** (the reference study's equilibrated method, section 3.2, in spirit):
 
 * *diagonal (Jacobi) scaling* of the variables (``jacobi``, default on): ``y = D y~`` with
   ``D = diag(H_y)^-1/2`` (``x`` scaled the same at every step, so ``A~ = D_x^-1 A D_x``,
   ``B_v~ = D_x^-1 B_v D_v``, ``d~ = D_x^-1 d``, ``P_T~ = D_x P_T D_x``): every per-step Hessian
-  has a unit diagonal before the recursion (the seed's Ruiz step on ``Q``);
+  has a unit diagonal before the recursion (the reference study's Ruiz step on ``Q``);
 * *symmetrisation* of ``S_k`` (seed step 5), default on;
 * *ridge* (``ridge``, default 0): ``+ ridge I`` on the ``v`` block of the scaled per-step
   Hessians, i.e. relative to their unit diagonal (a proximal term: the answer changes by
   ``O(ridge)``, so it is off by default);
-* *rollout* restores ``A z = b`` (the seed's projection step, by construction): the forward
-  pass is a rollout of the (scaled) dynamics and ``eta`` is computed from the LCS row, so the
-  equality residual is rounding only (float32: at most ``1.6e-6`` on the quick suite's
-  ``c3plus_qp`` instances, against the seed's ``1e-4`` after projection); ``rollout=True``
-  rolls the states out once more in the original, unscaled coordinates (measured: no
-  difference, so off by default).
+* *rollout* restores ``A z = b`` (the reference study's projection step, by construction): the
+  forward pass is a rollout of the (scaled) dynamics and ``eta`` is computed from the LCS row, so
+  the equality residual is rounding only (float32: at most ``1.6e-6`` on the quick suite's
+  ``c3plus_qp`` instances, against the reference study's ``1e-4`` after projection);
+  ``rollout=True`` rolls the states out once more in the original, unscaled coordinates (measured:
+  no difference, so off by default).
 
 **Batching.** Every array has a leading sample axis; all products are numpy ``matmul``
 broadcasts, with no Python loop over samples (the only loops run over the ``T`` time steps).
@@ -1122,5 +1122,5 @@ class FastC3PlusController:
 
 
 def fast_options(**changes: Any) -> C3Options:
-    """The seed's C3+ options for :class:`FastC3Plus` (no iterate keeping)."""
+    """The reference study's C3+ options for :class:`FastC3Plus` (no iterate keeping)."""
     return replace(C3Options(keep_iterates=False), **changes)

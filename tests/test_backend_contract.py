@@ -37,8 +37,8 @@ KKT_LIMIT = 1e-4
 COMPLEMENTARITY_LIMIT = 1e-4
 """Largest relative primal residual and complementarity violation of a found MPCC answer."""
 NOT_OPTIMAL = {("equilibrated_kkt", Family.C3PLUS_QP), ("equilibrated_kkt", Family.C3_QP)}
-"""The seed's method with its relative ridge 1e-4 returns a feasible (projected) point that is
-not optimal: after Ruiz the Schur complement's smallest eigenvalues are 1e-5 to 1e-6, so the
+"""The reference study's method with its relative ridge 1e-4 returns a feasible (projected) point
+that is not optimal: after Ruiz the Schur complement's smallest eigenvalues are 1e-5 to 1e-6, so the
 ridge moves the answer (``equilibrated_kkt_noridge`` is the exact variant). Only its primal
 residual is checked here; the benchmark's residual check rejects such cells."""
 

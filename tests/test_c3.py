@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from c3bench.problems import families
-from c3bench.problems.capture import CaptureContext, SuiteSpec, seed_rho
+from c3bench.problems.capture import CaptureContext, SuiteSpec, reference_rho
 from c3bench.problems.config import load_config
 from c3bench.problems.instance import Problem
 from c3bench.problems.lcs import LCS
@@ -104,7 +104,7 @@ def _delta_vector(solution: C3Solution, lcs: LCS) -> np.ndarray:
 
 
 # --- C3+ against the MIQP optimum ---------------------------------------------------------------
-# Measured (clarabel at 1e-9, seed's schedule, 10 iterations, cold start):
+# Measured (clarabel at 1e-9, the reference study's schedule, 10 iterations, cold start):
 #   state 5:  J(z) = J(delta) = 1.215 J*,  J(LCS rollout of delta's inputs) = 1.426 J*
 #   state 29: J(z) = J(delta) = 1.406 J*,  J(rollout) = 1.527 J*
 # (J* = 92742.02 and 4244.41 by enumeration). C3+ does not reach consensus in 10 iterations here
@@ -191,7 +191,7 @@ def test_closed_form_projection_equals_miqp_on_c3plus_projection(small: SimpleNa
     lcs = small.cases[0].lcs
     layout = full_layout(lcs, 1)
     rng = np.random.default_rng(7)
-    for rho in (seed_rho(0), {"x": 1.0, "lam": 2.0, "u": 0.1, "eta": 300.0},
+    for rho in (reference_rho(0), {"x": 1.0, "lam": 2.0, "u": 0.1, "eta": 300.0},
                 {"x": 3.0, "lam": 300.0, "u": 0.5, "eta": 2.0}):
         U = families.weight_vector(layout, rho)
         v = rng.normal(0.0, 2.0, layout.step_size)
@@ -235,7 +235,7 @@ def test_geometric_schedule_is_the_seeds() -> None:
     options = C3Options()
     rho = dict(REFERENCE_RHO0)
     for i in range(6):
-        assert rho == seed_rho(i)
+        assert rho == reference_rho(i)
         rho = next_rho(options, rho, 1.0, None, 1.0)
 
 
@@ -267,7 +267,7 @@ def test_dual_rescaling_keeps_the_unscaled_dual(small: SimpleNamespace) -> None:
     layout = full_layout(small.cases[0].lcs, 3)
     rng = np.random.default_rng(0)
     w = rng.normal(size=(3, layout.step_size))
-    old, new = seed_rho(1), seed_rho(2)
+    old, new = reference_rho(1), reference_rho(2)
     scaled = rescale_dual(w, layout, old, new)
     np.testing.assert_allclose(2 * families.weight_vector(layout, new) * scaled,
                                2 * families.weight_vector(layout, old) * w)
@@ -453,7 +453,7 @@ def test_controller_capture_is_deterministic_with_the_seeds_rho(small: SimpleNam
     assert [it.iteration for it in first] == [0, 1, 2, 3]  # covers the suite's iterations
     layout = full_layout(small.cases[0].lcs, small.mpc.horizon)
     for a, b in zip(first, second, strict=True):
-        assert a.rho == seed_rho(a.iteration) == b.rho
+        assert a.rho == reference_rho(a.iteration) == b.rho
         assert a.source == f"controller:c3plus/{backend}"
         for name in ("delta", "w", "projection_v"):
             assert getattr(a, name).shape == (small.mpc.horizon, layout.step_size)

@@ -1,4 +1,4 @@
-"""The seed's equilibrated KKT method (solvers/equilibrated.py) and the KKT backends."""
+"""The reference study's equilibrated KKT method (solvers/equilibrated.py) and the KKT backends."""
 
 from __future__ import annotations
 
@@ -101,7 +101,7 @@ def test_quick_suite_agrees_with_direct_solve(quick_qps: list[Problem]) -> None:
 
 
 def test_seed_ridge_biases_the_solution_but_stays_feasible(quick_qps: list[Problem]) -> None:
-    # The seed's ridge (1e-4, relative) regularises S: the answer is feasible after the
+    # The reference study's ridge (1e-4, relative) regularises S: the answer is feasible after the
     # projection but not optimal. Measured on the default suite: objective up to 1.7e-2
     # (c3plus_qp) and 3.4e-3 (c3_qp) above the optimum, never below.
     for problem in quick_qps:
@@ -221,8 +221,8 @@ def test_float32_projection_cuts_the_violation(quick_qps: list[Problem], ridge: 
         assert found.kkt.schur_factor[0].dtype == np.float32
         d = found.diagnostics
         assert d is not None
-        # with the seed's ridge the projection gains >= 100x; without it the float32 solve
-        # is already feasible to ~5e-7 on c3_qp, so the gain there is only ~15x
+        # with the reference study's ridge the projection gains >= 100x; without it the float32
+        # solve is already feasible to ~5e-7 on c3_qp, so the gain there is only ~15x
         gain = 100 if ridge > 0 else 5
         assert d.mean_violation_after_projection < d.mean_violation_before_projection / gain
         assert d.violation_after_projection < 1e-5

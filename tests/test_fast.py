@@ -59,7 +59,8 @@ def _relative(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def quick_qps(tmp_path_factory: pytest.TempPathFactory) -> list[Problem]:
     """The quick suite's c3plus_qp instances, with the provisional iterates and with iterates
-    captured from real C3+ runs (clarabel inside: nonzero duals, the seed's rho schedule)."""
+    captured from real C3+ runs (clarabel inside: nonzero duals, the reference study's rho
+    schedule)."""
     problems: list[Problem] = []
     for capture in (None, controller_capture(_exact_options(keep_iterates=True))):
         out: Path = tmp_path_factory.mktemp("quick")

@@ -79,7 +79,8 @@ def test_core_api_works_without_the_plant() -> None:
         import json, sys, tempfile
         import numpy as np
         from c3bench.problems import families
-        from c3bench.problems.capture import SUITES, CaptureContext, provisional_capture, seed_rho
+        from c3bench.problems.capture import (
+            SUITES, CaptureContext, provisional_capture, reference_rho)
         from c3bench.problems.instance import Problem, load_problem, save_problem
         from c3bench.problems.lcs import LCS, LCSBatch
         from c3bench.problems.mpc import MPC
@@ -98,9 +99,9 @@ def test_core_api_works_without_the_plant() -> None:
         meta = {"scene": "planar", "l": 0.29, "dt": 0.05, "T": T, "seed": 0,
                 "precision": "float64"}
         problems = [
-            families.consensus_qp("c3plus_qp", "a", lcs, mpc, x0, seed_rho(1), meta=meta),
+            families.consensus_qp("c3plus_qp", "a", lcs, mpc, x0, reference_rho(1), meta=meta),
             families.consensus_qp("c3_qp", "b", lcs, mpc, x0,
-                                  {k: v for k, v in seed_rho(1).items() if k != "eta"},
+                                  {k: v for k, v in reference_rho(1).items() if k != "eta"},
                                   meta=meta),
             families.mpcc("c", lcs, mpc, x0, meta=meta),
             families.lcp("d", lcs, x0, u, meta=meta),

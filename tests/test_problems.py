@@ -12,7 +12,7 @@ import pytest
 
 from c3bench.bench.cli import main
 from c3bench.problems import families
-from c3bench.problems.capture import SUITES, SuiteSpec, seed_rho
+from c3bench.problems.capture import SUITES, SuiteSpec, reference_rho
 from c3bench.problems.config import MPCConfig, SceneConfig, load_config
 from c3bench.problems.instance import (
     FAMILIES,
@@ -141,10 +141,10 @@ def test_consensus_qp_objective_is_mpc_cost_plus_consensus(setting: tuple) -> No
     rng = np.random.default_rng(1)
     delta = rng.normal(size=(mpc.horizon, layout.step_size))
     w = rng.normal(size=(mpc.horizon, layout.step_size))
-    problem = families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, seed_rho(3), delta, w)
+    problem = families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, reference_rho(3), delta, w)
     z = rng.normal(size=layout.size)
     parts = layout.split(z)
-    g = families.weight_vector(layout, seed_rho(3))
+    g = families.weight_vector(layout, reference_rho(3))
     steps = z[: mpc.horizon * layout.step_size].reshape(mpc.horizon, -1)
     expected = mpc.cost(parts["x"], parts["u"]) + np.sum(g * (steps - (delta - w)) ** 2)
     assert problem.objective(z) == pytest.approx(expected, rel=1e-12)
@@ -153,7 +153,7 @@ def test_consensus_qp_objective_is_mpc_cost_plus_consensus(setting: tuple) -> No
 def test_consensus_qp_constraints_are_the_lcs(setting: tuple) -> None:
     """A trajectory rolled out through the LCS satisfies A z = b exactly."""
     _, lcs, mpc, x0, _ = setting
-    problem = families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, seed_rho(0))
+    problem = families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, reference_rho(0))
     layout = HorizonLayout.from_json(problem.meta["layout"])
     rng = np.random.default_rng(2)
     z = np.zeros(layout.size)
@@ -166,7 +166,7 @@ def test_consensus_qp_constraints_are_the_lcs(setting: tuple) -> None:
     z[layout.index(mpc.horizon, "x")] = x
     assert np.max(np.abs(problem.A @ z - problem.b)) < 1e-9
     c3 = families.consensus_qp("c3_qp", "t", lcs, mpc, x0,
-                               {k: v for k, v in seed_rho(0).items() if k != "eta"})
+                               {k: v for k, v in reference_rho(0).items() if k != "eta"})
     assert c3.n == problem.n - mpc.horizon * lcs.nlam
     assert c3.n_eq == problem.n_eq - mpc.horizon * lcs.nlam
 
@@ -201,16 +201,16 @@ def test_builders_reject_bad_input(setting: tuple, change, name: str) -> None:
     with pytest.raises(ValueError, match=name):
         families.mpcc("m", lcs, mpc, x0)
     with pytest.raises(ValueError, match=name):
-        families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, seed_rho(0))
+        families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, reference_rho(0))
 
 
 def test_rho_must_be_positive(setting: tuple) -> None:
     _, lcs, mpc, x0, _ = setting
-    bad = dict(seed_rho(0), lam=-1.0)
+    bad = dict(reference_rho(0), lam=-1.0)
     with pytest.raises(ValueError, match="lam"):
         families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, bad)
     with pytest.raises(ValueError, match="delta"):
-        families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, seed_rho(0),
+        families.consensus_qp("c3plus_qp", "t", lcs, mpc, x0, reference_rho(0),
                               delta=np.zeros((2, 3)))
 
 

@@ -2,7 +2,7 @@
 
 For ``min 1/2 x^T P x + q^T x`` s.t. ``A x = b`` (no inequalities, no finite bounds):
 
-* ``equilibrated_kkt``: the seed's 11-step equilibrated Schur-complement method
+* ``equilibrated_kkt``: the reference study's 11-step equilibrated Schur-complement method
   (:mod:`c3bench.solvers.equilibrated`, with ``Q = P / 2`` and ``c = q``), float64 or
   float32. ``settings.options`` may name a preset, ``{"ablation": "no_ruiz_schur"}`` (see
   :data:`c3bench.solvers.equilibrated.ABLATIONS`), and/or switch single steps,
@@ -104,11 +104,12 @@ class _EqualityQPBackend(Backend):
 
 
 class EquilibratedKKTBackend(_EqualityQPBackend):
-    """The seed's equilibrated Schur-complement method, with ablation switches."""
+    """The reference study's equilibrated Schur-complement method, with ablation switches."""
 
     name = "equilibrated_kkt"
-    description = ("seed's equilibrated Schur-complement KKT solve (row scaling, Ruiz on Q "
-                   "and S, ridge, projection); float32/float64; ablations via options")
+    description = ("the reference study's equilibrated Schur-complement KKT solve (row "
+                   "scaling, Ruiz on Q and S, ridge, projection); float32/float64; ablations "
+                   "via options")
     steps_override: EquilibrationSteps | None = None
 
     def steps(self, settings: Settings) -> EquilibrationSteps:
@@ -161,15 +162,15 @@ class EquilibratedKKTBackend(_EqualityQPBackend):
 
 
 class EquilibratedNoRidgeBackend(EquilibratedKKTBackend):
-    """The seed's method without the ridge (step 7): exact on well-posed instances.
+    """The reference study's method without the ridge (step 7): exact on well-posed instances.
 
-    With the seed's relative ridge of 1e-4 the answer is feasible (thanks to the projection)
-    but not optimal, because after Ruiz the smallest eigenvalues of ``S`` are 1e-5 to 1e-6;
-    this variant shows what the ridge costs in accuracy and buys in robustness.
+    With the reference study's relative ridge of 1e-4 the answer is feasible (thanks to the
+    projection) but not optimal, because after Ruiz the smallest eigenvalues of ``S`` are 1e-5 to
+    1e-6; this variant shows what the ridge costs in accuracy and buys in robustness.
     """
 
     name = "equilibrated_kkt_noridge"
-    description = "the seed's equilibrated method with the ridge (step 7) switched off"
+    description = "the reference study's equilibrated method with the ridge (step 7) switched off"
     steps_override = ABLATIONS["no_ridge"]
 
 
