@@ -9,9 +9,13 @@ gap are taken *relative* to the size of their terms, ``r / max(1, scale)`` as de
 demand 1e-12 relative accuracy; this is OSQP's mixed test with ``eps_abs = eps_rel``):
 
 * every family: relative primal residual ``<= eps`` and complementarity violation
-  ``max |min(x_i, x_j)| <= eps`` (0 for families without pairs);
+  ``max |min(x_i, x_j)| <= eps`` (0 for families without pairs); for ``lcp`` the
+  complementarity violation is the relative natural residual ``||min(lam, w)|| / max(1,
+  ||P lam||, ||q||)`` of ``0 <= lam perp w = P lam + q >= 0``, so success also needs
+  ``lam >= -eps`` and ``w >= -eps`` (relatively);
 * families whose solution has meaningful duals (:data:`DUAL_FAMILIES`: ``c3plus_qp``,
-  ``c3_qp``, ``lcp``): also relative dual residual and relative duality gap ``<= eps``; for
+  ``c3_qp``, ``lcp``): also relative dual residual (stationarity *and* dual signs, see
+  :func:`solvers.residuals.dual_residual`) and relative duality gap ``<= eps``; for
   ``projection`` and ``mpcc`` the problem is a mixed-integer (non-convex) program without a
   dual certificate, so duals are neither required nor checked;
 * where a reference optimum ``f*`` exists: ``|f - f*| / max(1, |f*|) <= max(eps, s)`` with

@@ -9,9 +9,11 @@ it and their relative disagreement
 is recorded as the reference's own uncertainty (:mod:`bench.metrics` judges cost errors
 against ``max(tolerance, spread)``). A reference is accepted when its solver reports a
 solution whose relative primal residual and complementarity violation are at most
-:data:`ACCEPT_RESIDUAL`; when the reference backend fails but the check succeeds, the check
-becomes the reference (the ``reason`` column says so). When neither does, ``f*`` is NaN, every
-cost error of that instance is NaN and the report lists the reason.
+:data:`ACCEPT_RESIDUAL` (for ``lcp`` the complementarity figure is the relative natural
+residual ``||min(lam, P lam + q)||``, so a point with ``lam`` or ``w`` negative is refused);
+when the reference backend fails but the check succeeds, the check becomes the reference (the
+``reason`` column says so). When neither does, ``f*`` is NaN, every cost error of that
+instance is NaN and the report lists the reason.
 
 The cache ``results/<suite>/references.parquet`` holds one row per instance (with the
 reference's ``x, y, z, z_box`` for warm starts), keyed by the instance's content hash and the
@@ -149,7 +151,7 @@ def _accept(problem: Problem, result: Any) -> tuple[bool, str, float, float]:
         return False, f"{result.solver}: {result.failure or 'not found'}: {result.status}", \
             float("nan"), float("nan")
     figures = residuals(problem, result.x)
-    worst = max(figures.primal_relative, figures.complementarity)
+    worst = float(np.max([figures.primal_relative, figures.complementarity]))  # NaN fails
     if not worst <= ACCEPT_RESIDUAL:
         return False, (f"{result.solver}: residual {worst:.2e} above {ACCEPT_RESIDUAL:.0e} "
                        f"({result.status})"), figures.primal, figures.complementarity

@@ -104,8 +104,8 @@ SCHEMA: tuple[Column, ...] = (
     Column("solve_time", "float64", "Median seconds solving."),
     Column("objective", "float64", "1/2 x^T P x + q^T x + offset at the returned x."),
     Column("primal_residual", "float64", "max(||Ax-b||, ||[Gx-h]+||, bound violation), inf-norm."),
-    Column("dual_residual", "float64", "||Px + q + A^T y + G^T z + z_box||_inf (NaN without "
-           "duals)."),
+    Column("dual_residual", "float64", "max(||Px + q + A^T y + G^T z + z_box||_inf, largest "
+           "wrong-signed z or z_box) (NaN without duals)."),
     Column("duality_gap", "float64", "|x^T P x + q^T x + b^T y + h^T z + bound terms|."),
     Column("primal_residual_relative", "float64", "primal_residual / max(1, size of its terms: "
            "||Ax||, ||b||, ||Gx||, ||h||, bounds) (solvers.residuals); judged for success."),
@@ -114,7 +114,7 @@ SCHEMA: tuple[Column, ...] = (
     Column("duality_gap_relative", "float64", "duality_gap / max(1, largest term of the gap); "
            "judged for success."),
     Column("complementarity_violation", "float64", "max over pairs |min(x_i, x_j)| (0 without "
-           "pairs)."),
+           "pairs); lcp: ||min(lam, P lam + q)||_inf / max(1, ||P lam||, ||q||)."),
     Column("cost_error", "float64", "|f - f*| / max(1, |f*|) against the reference optimum "
            "(NaN without one)."),
     Column("reference_solver", "str", "Backend that gave f* ('' when no reference)."),

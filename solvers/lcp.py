@@ -18,6 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from c3bench.solvers.residuals import natural_residual
+
+__all__ = ["LCPSolution", "lemke", "natural_residual", "projected_gauss_seidel"]
+
 
 @dataclass
 class LCPSolution:
@@ -44,19 +48,19 @@ class LCPSolution:
     residuals: list[float]
 
 
-def natural_residual(M: np.ndarray, q: np.ndarray, z: np.ndarray) -> float:
-    """``||min(z, M z + q)||_inf``: zero exactly at a solution of the LCP."""
-    return float(np.max(np.abs(np.minimum(z, M @ z + q)), initial=0.0))
-
-
 def lemke(M: np.ndarray, q: np.ndarray, max_pivots: int | None = None,
-          tol: float = 1e-12) -> LCPSolution:
+          tol: float = 1e-12, check_tol: float = 1e-9) -> LCPSolution:
     """Lemke's complementary pivoting method with covering vector ``e = 1``.
 
     Solves the tableau ``w - M z - e z0 = q``. Terminates at a solution for P-matrices and,
     for copositive-plus ``M`` (symmetric PSD included), whenever the LCP is feasible; a
     secondary ray means no solution was found. Ties in the ratio test prefer the artificial
     variable ``z0``, then the lowest row.
+
+    A terminal basis is a solution only if it checks: the natural residual
+    ``||min(z, M z + q)||_inf`` (which bounds ``[-z]_+`` and ``[-w]_+``) must be at most
+    ``check_tol * max(1, ||M z||_inf, ||q||_inf)``; otherwise ``found`` is False and the status
+    starts ``"check failed"`` (round-off in the tableau, or no solution).
     """
     M = np.asarray(M, dtype=float)
     q = np.asarray(q, dtype=float)
@@ -102,8 +106,25 @@ def lemke(M: np.ndarray, q: np.ndarray, max_pivots: int | None = None,
             for i, var in enumerate(basis):
                 if n <= var < 2 * n:
                     z[var - n] = tableau[i, -1]
-            return LCPSolution(np.maximum(z, 0.0), True, "solved", count, [])
+            return _checked(M, q, z, count, check_tol)
     return LCPSolution(None, False, f"pivot limit {limit} reached", limit, [])
+
+
+def _checked(M: np.ndarray, q: np.ndarray, z: np.ndarray, count: int,
+             check_tol: float) -> LCPSolution:
+    """Lemke's terminal point, ``found`` only when it solves ``LCP(M, q)`` (see :func:`lemke`)."""
+    if not np.all(np.isfinite(z)):
+        return LCPSolution(z, False, "check failed: non-finite z", count, [])
+    residual = natural_residual(M, q, z)
+    w = M @ z + q
+    scale = max(1.0, float(np.max(np.abs(M @ z), initial=0.0)),
+                float(np.max(np.abs(q), initial=0.0)))
+    if not residual <= check_tol * scale:
+        return LCPSolution(z, False, f"check failed: ||min(z, Mz + q)||_inf = {residual:.3g} "
+                           f"(min z = {float(np.min(z, initial=0.0)):.3g}, min w = "
+                           f"{float(np.min(w, initial=0.0)):.3g}) > {check_tol:g} * "
+                           f"{scale:.3g}", count, [])
+    return LCPSolution(np.maximum(z, 0.0), True, "solved", count, [])
 
 
 def projected_gauss_seidel(M: np.ndarray, q: np.ndarray, tol: float = 1e-8,

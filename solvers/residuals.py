@@ -4,11 +4,19 @@ Definitions follow qpsolvers' ``Solution`` (infinity norms), for
 ``min 1/2 x^T P x + q^T x`` s.t. ``A x = b``, ``G x <= h``, ``lb <= x <= ub``:
 
 * primal residual ``max(||A x - b||, ||[G x - h]_+||, ||[lb - x]_+||, ||[x - ub]_+||)``;
-* dual residual ``||P x + q + A^T y + G^T z + z_box||``;
+* dual residual ``max(||P x + q + A^T y + G^T z + z_box||, ||[-z]_+||, ||sign violation of
+  z_box||)``: stationarity and dual feasibility together. ``z`` (of ``G x <= h``) must be
+  ``>= 0``; ``z_box_i < 0`` is allowed only where ``lb_i`` is finite and ``z_box_i > 0`` only
+  where ``ub_i`` is finite, so the box part is ``[-z_box_i]_+`` where ``lb_i`` is missing or
+  infinite and ``[z_box_i]_+`` where ``ub_i`` is (a wrong-signed dual never passes on
+  stationarity alone);
 * duality gap ``|x^T P x + q^T x + b^T y + h^T z + lb^T [z_box]_- + ub^T [z_box]_+|``
   (infinite bounds skipped);
 * complementarity violation ``max_pairs |min(x_i, x_j)|`` (the natural-map residual of
-  ``0 <= x_i perp x_j >= 0``);
+  ``0 <= x_i perp x_j >= 0``); for the ``lcp`` family, whose complementarity is
+  ``0 <= lam perp w = P lam + q >= 0`` (no pairs), it is the relative natural residual
+  ``||min(lam, w)||_inf / max(1, ||P lam||_inf, ||q||_inf)`` (:func:`lcp_residual`), which
+  also bounds ``[-lam]_+`` and ``[-w]_+`` (``|min(a, b)| >= max(-a, -b)``);
 * cost error ``|f(x) - f*| / max(1, |f*|)`` against a reference optimum ``f*``.
 
 Our instances are badly scaled (gradients up to 4e5, objectives up to 3e6), so an absolute
@@ -28,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c3bench.problems.instance import Problem
+from c3bench.problems.names import Family
 
 
 def _inf_norm(vector: np.ndarray) -> float:
@@ -55,9 +64,29 @@ def _zeros_if_none(value: np.ndarray | None, size: int) -> np.ndarray:
     return np.zeros(size) if value is None else np.asarray(value, dtype=float)
 
 
+def dual_sign_violation(problem: Problem, z: np.ndarray | None,
+                        z_box: np.ndarray | None) -> float:
+    """Largest wrong-signed multiplier (qpsolvers' convention, see :mod:`solvers.base`).
+
+    ``max(||[-z]_+||, ||[-z_box]_+ where lb is not finite||, ||[z_box]_+ where ub is not
+    finite||)``: ``z >= 0``, ``z_box_i < 0`` only on a finite lower bound, ``> 0`` only on a
+    finite upper bound.
+    """
+    parts = [0.0]
+    if problem.G is not None and z is not None:
+        parts.append(_inf_norm(np.maximum(-np.asarray(z, dtype=float), 0.0)))
+    if (problem.lb is not None or problem.ub is not None) and z_box is not None:
+        box = np.asarray(z_box, dtype=float)
+        lower = np.zeros(problem.n, dtype=bool) if problem.lb is None else np.isfinite(problem.lb)
+        upper = np.zeros(problem.n, dtype=bool) if problem.ub is None else np.isfinite(problem.ub)
+        parts.append(_inf_norm(np.maximum(-box[~lower], 0.0)))
+        parts.append(_inf_norm(np.maximum(box[~upper], 0.0)))
+    return max(parts)
+
+
 def dual_residual(problem: Problem, x: np.ndarray, y: np.ndarray | None,
                   z: np.ndarray | None, z_box: np.ndarray | None) -> float:
-    """``||P x + q + A^T y + G^T z + z_box||_inf``."""
+    """``max(||P x + q + A^T y + G^T z + z_box||_inf, dual_sign_violation(z, z_box))``."""
     x = np.asarray(x, dtype=float)
     gradient = problem.P @ x + problem.q
     if problem.A is not None:
@@ -66,7 +95,7 @@ def dual_residual(problem: Problem, x: np.ndarray, y: np.ndarray | None,
         gradient = gradient + problem.G.T @ _zeros_if_none(z, problem.n_ineq)
     if problem.lb is not None or problem.ub is not None:
         gradient = gradient + _zeros_if_none(z_box, problem.n)
-    return _inf_norm(gradient)
+    return max(_inf_norm(gradient), dual_sign_violation(problem, z, z_box))
 
 
 def duality_gap(problem: Problem, x: np.ndarray, y: np.ndarray | None,
@@ -95,6 +124,23 @@ def complementarity_violation(problem: Problem, x: np.ndarray) -> float:
     x = np.asarray(x, dtype=float)
     pairs = problem.complementarity
     return _inf_norm(np.minimum(x[pairs[:, 0]], x[pairs[:, 1]]))
+
+
+def natural_residual(M: np.ndarray, q: np.ndarray, z: np.ndarray) -> float:
+    """``||min(z, M z + q)||_inf``: zero exactly at a solution of ``LCP(M, q)``."""
+    z = np.asarray(z, dtype=float)
+    return _inf_norm(np.minimum(z, M @ z + q))
+
+
+def lcp_residual(problem: Problem, x: np.ndarray) -> float:
+    """Relative natural residual of ``LCP(P, q)``: ``||min(x, w)|| / max(1, ||P x||, ||q||)``.
+
+    ``w = P x + q``. Bounds ``[-x]_+`` and ``[-w]_+`` as well, so at most ``tol`` implies
+    ``x >= -tol`` and ``w >= -tol`` (relatively).
+    """
+    x = np.asarray(x, dtype=float)
+    scale = max(1.0, _inf_norm(problem.P @ x), _inf_norm(problem.q))
+    return natural_residual(problem.P, problem.q, x) / scale
 
 
 def cost_error(objective: float, reference: float) -> float:
@@ -153,6 +199,8 @@ def residuals(problem: Problem, x: np.ndarray, y: np.ndarray | None = None,
               z: np.ndarray | None = None, z_box: np.ndarray | None = None) -> Residuals:
     """Primal and dual residuals, duality gap and complementarity violation at once.
 
+    The complementarity figure of an ``lcp`` instance is :func:`lcp_residual` (``lam perp w``).
+
     Dual residual and gap are ``nan`` when the solver returned no duals for a problem that has
     constraints (they cannot be computed, and are never counted as zero).
     """
@@ -166,7 +214,8 @@ def residuals(problem: Problem, x: np.ndarray, y: np.ndarray | None = None,
     primal_scale, dual_scale, gap_scale = _scales(problem, x, y, z, z_box)
     return Residuals(
         primal=primal, dual=dual, gap=gap,
-        complementarity=complementarity_violation(problem, x),
+        complementarity=lcp_residual(problem, x) if problem.family == Family.LCP
+        else complementarity_violation(problem, x),
         primal_relative=primal / max(1.0, primal_scale),
         dual_relative=dual / max(1.0, dual_scale),
         gap_relative=gap / max(1.0, gap_scale),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 from pathlib import Path
 
 import numpy as np
@@ -171,3 +172,78 @@ def test_accepts_only_the_lcp_form(quick_lcps: list[Problem]) -> None:
         assert result.failure == "unsupported"
         float32 = registry.solve(name, problem, Settings(precision="float32"), isolate=False)
         assert float32.failure == "unsupported"
+
+
+# --- LCPs without a solution: never solved, never a reference, never a success -------------------
+def unsolvable_lcps() -> list[Problem]:
+    """``F = [[0]], q = [-1]``: ``w = -1`` for every ``lam``; ``F = [[2, -2], [-2, 2]]``,
+    ``q = [-3, 0]``: ``w_2 >= 0`` needs ``lam_2 >= lam_1``, then ``w_1 = -3 - 2 (lam_2 - lam_1)
+    < 0``."""
+    return [lcp_problem("none-1", np.array([[0.0]]), np.array([-1.0])),
+            lcp_problem("none-2", np.array([[2.0, -2.0], [-2.0, 2.0]]), np.array([-3.0, 0.0]))]
+
+
+def test_lemke_never_claims_an_unsolvable_lcp() -> None:
+    settings = settings_for("high_accuracy")
+    for problem in unsolvable_lcps():
+        result = registry.solve("lemke", problem, settings, isolate=False)
+        assert not result.found and result.failure == "error", result.status
+
+
+def test_lemke_checks_its_terminal_basis() -> None:
+    """A loose tie tolerance makes the ratio test pick a wrong row on ``none-2``: the terminal
+    basis has ``w_2 = -3``; the check refuses it instead of reporting "solved"."""
+    from c3bench.solvers.lcp import lemke
+
+    problem = unsolvable_lcps()[1]
+    outcome = lemke(problem.P, problem.q, tol=0.9)
+    assert not outcome.found and outcome.status.startswith("check failed"), outcome.status
+    assert outcome.z is not None and np.min(problem.P @ outcome.z + problem.q) < -1.0
+
+
+def test_claimed_non_solution_is_not_judged_a_success() -> None:
+    """A fake backend claiming ``lam = 0`` (with a sign-feasible or a wrong-signed box dual
+    that zeroes stationarity) is not a success, and is not accepted as a reference."""
+    from c3bench.bench import store
+    from c3bench.bench.reference import _accept
+    from c3bench.bench.rows import fill_row
+    from c3bench.solvers.base import Result
+
+    problem = unsolvable_lcps()[0]
+    x = np.zeros(1)
+    w = problem.P @ x + problem.q
+    for z_box in (np.minimum(-w, 0.0), -w):  # clipped (dual residual 1), wrong sign (+1)
+        fake = Result("fake", problem.name, True, "solved", x=x, z_box=z_box)
+        row = store.empty_row()
+        row.update({"family": "lcp", "tolerance": 1e-6})
+        row = fill_row(row, problem, fake)
+        assert row["complementarity_violation"] == pytest.approx(1.0)
+        assert row["dual_residual"] == pytest.approx(1.0)
+        assert not row["success"] and "complementarity_violation" in row["verdict"]
+        assert not _accept(problem, fake)[0]
+
+
+def test_unsolvable_lcp_gets_no_reference() -> None:
+    from c3bench.bench.reference import compute_reference, plan_for
+
+    for problem in unsolvable_lcps():
+        ref = compute_reference(problem, "digest", plan_for("lcp"), time_limit=30.0)
+        assert not ref.available and math.isnan(ref.objective), ref
+
+
+def test_solvable_lcp_still_passes() -> None:
+    from c3bench.bench import store
+    from c3bench.bench.reference import _accept, compute_reference, plan_for
+    from c3bench.bench.rows import fill_row
+
+    problem = random_psd_lcp(3)
+    ref = compute_reference(problem, "digest", plan_for("lcp"), time_limit=30.0)
+    assert ref.available and ref.solver == "lemke"
+    result = registry.solve("lemke", problem, settings_for("default"), isolate=False)
+    assert result.found and _accept(problem, result)[0]
+    row = store.empty_row()
+    row.update({"family": "lcp", "tolerance": 1e-6, "reference_solver": ref.solver,
+                "reference_objective": ref.objective, "reference_spread": ref.spread})
+    row = fill_row(row, problem, result)
+    assert row["success"], row["verdict"]
+    assert row["complementarity_violation"] <= 1e-9

@@ -12,7 +12,11 @@ dual; ``lam^T w`` shows up in the duality gap. ``diagnostics["natural_residual"]
 ``||min(lam, w)||_inf``.
 
 * ``lemke``: complementary pivoting (:func:`c3bench.solvers.lcp.lemke`; Lemke 1965);
-  ``iterations`` = pivots.
+  ``iterations`` = pivots. A terminal basis is checked before it is claimed: unless
+  ``||min(lam, w)||_inf <= 1e-9 max(1, ||P lam||, ||q||)`` (so ``lam >= 0`` and ``w >= 0``
+  up to that tolerance) the result is ``found=False``, ``Failure.ERROR``, status
+  ``"check failed: ..."`` with the point as ``x``. An LCP without a solution is never
+  reported solved (its status is then a secondary ray or a failed check).
 * ``pgs``: projected Gauss-Seidel (:func:`c3bench.solvers.lcp.projected_gauss_seidel`; Cottle,
   Pang and Stone 1992); stops when the
   natural residual ``||min(lam, w)||_inf`` *and* the gap ``|lam^T w|`` are both below
@@ -41,8 +45,9 @@ import numpy as np
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import Failure, Family, Precision
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
-from c3bench.solvers.lcp import LCPSolution, lemke, natural_residual, projected_gauss_seidel
+from c3bench.solvers.lcp import LCPSolution, lemke, projected_gauss_seidel
 from c3bench.solvers.registry import register
+from c3bench.solvers.residuals import natural_residual
 from c3bench.solvers.timing import Stopwatch
 
 PGS_DEFAULT_MAX_SWEEPS = 10_000
