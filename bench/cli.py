@@ -42,7 +42,7 @@ from c3bench.bench.cli_options import (
     positive_float,
     positive_int,
 )
-from c3bench.bench.planning import DEFAULT_SETTINGS, PRECISIONS, STARTS
+from c3bench.bench.planning import DEFAULT_PRECISIONS, DEFAULT_SETTINGS, STARTS
 from c3bench.problems.capture import SUITES, Capture
 from c3bench.problems.errors import C3BenchError, InputError
 from c3bench.problems.names import Family, Precision, Profile, Start, Variant
@@ -265,7 +265,7 @@ def _add_benchmark(sub: Any) -> None:
     add_list(run, "--settings", metavar="PROFILE", choices=tuple(Profile),
              default=DEFAULT_SETTINGS, help="settings profiles")
     add_list(run, "--precision", metavar="PRECISION", choices=tuple(Precision),
-             default=PRECISIONS, help="precisions, float32 only where a backend runs in it")
+             default=DEFAULT_PRECISIONS, help="precisions, float32 only where a backend runs in it")
     add_list(run, "--start", metavar="START", choices=tuple(Start), default=STARTS,
              help="cold and/or warm starts")
     add_list(run, "--families", metavar="FAMILY", choices=tuple(Family),

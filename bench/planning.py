@@ -23,7 +23,7 @@ from c3bench.solvers import registry
 
 STARTS: tuple[Start, ...] = tuple(Start)
 """Both starts, cold first."""
-PRECISIONS: tuple[Precision, ...] = tuple(Precision)
+DEFAULT_PRECISIONS: tuple[Precision, ...] = tuple(Precision)
 """Both precisions, float64 first (float32 cells only where a backend runs in it)."""
 DEFAULT_SETTINGS: tuple[Profile, ...] = (Profile.DEFAULT,)
 """Settings profiles of a run unless chosen otherwise."""

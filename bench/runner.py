@@ -23,8 +23,8 @@ from c3bench.bench import store
 from c3bench.bench.executors import DaskPool, Executor, LocalPool, Task
 from c3bench.bench.machine import machine_info, utc_now
 from c3bench.bench.planning import (
+    DEFAULT_PRECISIONS,
     DEFAULT_SETTINGS,
-    PRECISIONS,
     STARTS,
     Cell,
     Plan,
@@ -146,7 +146,7 @@ def run_suite(
     results_dir: str | Path = "results",
     solvers: Sequence[str] | None = None,
     settings: Sequence[str] = DEFAULT_SETTINGS,
-    precisions: Sequence[str] = PRECISIONS,
+    precisions: Sequence[str] = DEFAULT_PRECISIONS,
     starts: Sequence[str] = STARTS,
     families: Sequence[str] | None = None,
     jobs: int = 2,

@@ -24,14 +24,6 @@ from c3bench.problems.errors import BackendUnavailable, InputError
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import PROFILE_TOLERANCE, Failure, Family, Precision, Profile
 
-PROFILES: dict[str, float] = {str(profile): tolerance
-                              for profile, tolerance in PROFILE_TOLERANCE.items()}
-"""Profile name -> tolerance: :data:`c3bench.problems.names.PROFILE_TOLERANCE` by string (an
-alias kept while callers move to the names module)."""
-PRECISIONS: tuple[str, ...] = tuple(str(precision) for precision in Precision)
-"""Precision names: :class:`c3bench.problems.names.Precision` by string (an alias kept while
-callers move to the names module)."""
-
 
 @dataclass(frozen=True)
 class Settings:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from c3bench.solvers.residuals import natural_residual
+from c3bench.solvers.residuals import natural_residual, relative_natural_residual
 
 __all__ = ["LCPSolution", "lemke", "natural_residual", "projected_gauss_seidel"]
 
@@ -115,15 +115,13 @@ def _checked(M: np.ndarray, q: np.ndarray, z: np.ndarray, count: int,
     """Lemke's terminal point, ``found`` only when it solves ``LCP(M, q)`` (see :func:`lemke`)."""
     if not np.all(np.isfinite(z)):
         return LCPSolution(z, False, "check failed: non-finite z", count, [])
-    residual = natural_residual(M, q, z)
-    w = M @ z + q
-    scale = max(1.0, float(np.max(np.abs(M @ z), initial=0.0)),
-                float(np.max(np.abs(q), initial=0.0)))
-    if not residual <= check_tol * scale:
-        return LCPSolution(z, False, f"check failed: ||min(z, Mz + q)||_inf = {residual:.3g} "
-                           f"(min z = {float(np.min(z, initial=0.0)):.3g}, min w = "
-                           f"{float(np.min(w, initial=0.0)):.3g}) > {check_tol:g} * "
-                           f"{scale:.3g}", count, [])
+    residual = relative_natural_residual(M, q, z)
+    if not residual <= check_tol:
+        w = M @ z + q
+        return LCPSolution(z, False, "check failed: ||min(z, Mz + q)||_inf / max(1, ||Mz||, "
+                           f"||q||) = {residual:.3g} > {check_tol:g} (min z = "
+                           f"{float(np.min(z, initial=0.0)):.3g}, min w = "
+                           f"{float(np.min(w, initial=0.0)):.3g})", count, [])
     return LCPSolution(np.maximum(z, 0.0), True, "solved", count, [])
 
 

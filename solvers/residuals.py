@@ -132,15 +132,21 @@ def natural_residual(M: np.ndarray, q: np.ndarray, z: np.ndarray) -> float:
     return _inf_norm(np.minimum(z, M @ z + q))
 
 
-def lcp_residual(problem: Problem, x: np.ndarray) -> float:
-    """Relative natural residual of ``LCP(P, q)``: ``||min(x, w)|| / max(1, ||P x||, ||q||)``.
+def relative_natural_residual(M: np.ndarray, q: np.ndarray, z: np.ndarray) -> float:
+    """``||min(z, w)||_inf / max(1, ||M z||_inf, ||q||_inf)`` with ``w = M z + q``.
 
-    ``w = P x + q``. Bounds ``[-x]_+`` and ``[-w]_+`` as well, so at most ``tol`` implies
-    ``x >= -tol`` and ``w >= -tol`` (relatively).
+    Bounds ``[-z]_+`` and ``[-w]_+`` as well (``|min(a, b)| >= max(-a, -b)``), so a value at
+    most ``tol`` implies ``z >= -tol`` and ``w >= -tol`` relative to the same scale.
     """
-    x = np.asarray(x, dtype=float)
-    scale = max(1.0, _inf_norm(problem.P @ x), _inf_norm(problem.q))
-    return natural_residual(problem.P, problem.q, x) / scale
+    z = np.asarray(z, dtype=float)
+    scale = max(1.0, _inf_norm(M @ z), _inf_norm(q))
+    return natural_residual(M, q, z) / scale
+
+
+def lcp_residual(problem: Problem, x: np.ndarray) -> float:
+    """Relative natural residual of the ``lcp`` instance ``LCP(P, q)``
+    (:func:`relative_natural_residual`)."""
+    return relative_natural_residual(problem.P, problem.q, x)
 
 
 def cost_error(objective: float, reference: float) -> float:

@@ -16,10 +16,11 @@ from c3bench.problems.instance import Problem, load_instances
 from c3bench.problems.lcs import LCS_MATRICES, LCSBatch
 from c3bench.problems.linearize import linearize
 from c3bench.problems.linearize_batch import BatchLinearizer
+from c3bench.problems.names import PROFILE_TOLERANCE, Profile
 from c3bench.problems.scene import build_mpc, build_scene
 from c3bench.problems.suites import generate_suite, sample_states, scripted_push
 from c3bench.solvers import registry
-from c3bench.solvers.base import PROFILES, Settings, settings_for
+from c3bench.solvers.base import Settings, settings_for
 from c3bench.solvers.c3 import C3Controller, C3Options, controller_capture, solve_c3
 from c3bench.solvers.fast import (
     FactorCache,
@@ -32,7 +33,7 @@ from c3bench.solvers.fast import (
 from c3bench.solvers.projection import c3plus_projection
 from c3bench.solvers.residuals import primal_residual, residuals
 
-MID = PROFILES["mid_accuracy"]
+MID = PROFILE_TOLERANCE[Profile.MID_ACCURACY]
 SIDES = (0.27, 0.29, 0.30, 0.33)
 
 
