@@ -20,6 +20,7 @@ from c3bench.problems.errors import InputError
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import Precision, Profile, Start
 from c3bench.solvers import registry
+from c3bench.solvers.child_process import STARTUP_SECONDS
 
 STARTS: tuple[Start, ...] = tuple(Start)
 """Both starts, cold first."""
@@ -81,12 +82,15 @@ class RunOptions:
     suite: str = ""
 
     def cell_budget(self) -> float:
-        """Watchdog for one cell in the pool: well beyond the registry's own limit."""
-        return 2.0 * self.time_limit * (self.repeats + 1) + 60.0
+        """Watchdog for one cell in the pool: beyond the isolated solve's own bounds (its
+        child's start-up allowances and ``(repeats + 1) * time_limit``), so that a watchdog
+        overrun means a stuck worker, never a slow solve."""
+        return 2.0 * self.time_limit * (self.repeats + 1) + 2.0 * STARTUP_SECONDS + 60.0
 
     def reference_budget(self) -> float:
-        """Watchdog for one reference (two solves: the reference and its cross-check)."""
-        return 4.0 * self.reference_time_limit + 60.0
+        """Watchdog for one reference (two isolated solves: the reference and its
+        cross-check, each with its child's start-up allowances)."""
+        return 4.0 * self.reference_time_limit + 4.0 * STARTUP_SECONDS + 60.0
 
 
 def sequence_key(problem: Problem) -> str:
@@ -142,6 +146,9 @@ def plan_cells(problems: Sequence[Problem], solvers: Sequence[str] | None,
                starts: Sequence[str], previous: dict[str, str]) -> Plan:
     """Every cell a backend can take; warm cells only where a predecessor exists.
 
+    A backend whose ``accepts()`` raises is planned: its solve then records the error
+    (``accepts() raised ...``) instead of the cells silently missing.
+
     ``solvers=None`` means every available backend. Unknown names raise
     :class:`~c3bench.problems.errors.InputError`; unavailable backends are skipped (listed in
     ``skipped_solvers`` with the reason).
@@ -161,8 +168,8 @@ def plan_cells(problems: Sequence[Problem], solvers: Sequence[str] | None,
             backend = registry.get(name)
             try:
                 accepted, _ = backend.accepts(problem)
-            except Exception:  # noqa: BLE001 - a broken accepts() means it cannot take it
-                accepted = False
+            except Exception:  # noqa: BLE001 - planned: the solve records "accepts() raised"
+                accepted = True
             if not accepted:
                 continue
             for precision in precisions:

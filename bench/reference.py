@@ -35,8 +35,8 @@ import pyarrow as pa
 from c3bench.bench.store import atomic_write_bytes, parquet_bytes, read_parquet
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import Failure, Family, Profile
-from c3bench.solvers import registry
 from c3bench.solvers.base import WarmStart, settings_for
+from c3bench.solvers.isolation import solve_isolated
 from c3bench.solvers.residuals import cost_error, residuals
 
 
@@ -163,8 +163,10 @@ def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
     """Solve ``problem`` with the plan's reference and check backends.
 
     ``plan`` is decided by the caller (``plan_for(problem.family)``), so workers need no
-    copy of the table. Runs through :func:`solvers.registry.solve` (isolated child, time
-    limit enforced), so a failing reference costs only this instance's ``f*``.
+    copy of the table. Runs through :func:`c3bench.solvers.isolation.solve_isolated` (a
+    child killed on overrun), so a failing reference costs only this instance's ``f*``; a
+    child that cannot be started raises
+    :class:`~c3bench.solvers.isolation.IsolationFailed` (nothing to cache).
     """
     from c3bench.solvers.registry import import_plugins
 
@@ -175,9 +177,9 @@ def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
         ref.reason = f"no reference plan for family {problem.family!r}"
         return ref
     settings = settings_for(plan.settings, time_limit=time_limit)
-    main = registry.solve(plan.solver, problem, settings)
+    main = solve_isolated(plan.solver, problem, settings)
     ok, reason, primal, compl = _accept(problem, main)
-    check = registry.solve(plan.check, problem, settings) if plan.check else None
+    check = solve_isolated(plan.check, problem, settings) if plan.check else None
     check_ok = False
     if check is not None:
         check_ok, check_reason, _, _ = _accept(problem, check)

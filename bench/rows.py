@@ -1,10 +1,12 @@
-"""One cell's row: solve it through the guarded registry and fill the results schema.
+"""One cell's row: solve it in an isolated child and fill the results schema.
 
 Both executors (the local pool and Dask, :mod:`bench.executors`) call exactly
 :func:`run_cell`, and :func:`reference_task` for references. Timing follows docs/metrics.md
-through :func:`c3bench.solvers.registry.solve`: an untimed warm-up, then ``repeats`` timed
-solves (median), BLAS pinned to one thread, build and solve apart, the time limit enforced in
-a killed child. Columns are those of :data:`bench.store.SCHEMA`.
+through :func:`c3bench.solvers.isolation.solve_isolated`: an untimed warm-up, then ``repeats``
+timed solves (median), BLAS pinned to one thread, build and solve apart, the time limit
+enforced by killing the child. A child that cannot be started
+(:class:`~c3bench.solvers.isolation.IsolationFailed`) is raised, not stored. Columns are those
+of :data:`bench.store.SCHEMA`.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from c3bench.problems.instance import Problem
 from c3bench.problems.names import PROFILE_TOLERANCE, Failure, Profile, Start
 from c3bench.solvers import registry
 from c3bench.solvers.base import Result, WarmStart, settings_for
+from c3bench.solvers.isolation import IsolationFailed, solve_isolated
 from c3bench.solvers.residuals import cost_error, residuals
 
 
@@ -112,17 +115,18 @@ def fill_row(row: dict[str, Any], problem: Problem, result: Result) -> dict[str,
 def run_cell(cell: Cell, problem: Problem, options: RunOptions, version: str = "",
              reference: ReferenceValue | None = None,
              warm_start: WarmStart | None = None, digest: str = "") -> CellOutcome:
-    """Solve one cell through the guarded registry and build its row. Never raises.
+    """Solve one cell in an isolated child and build its row. Raises only on an interrupt or
+    :class:`~c3bench.solvers.isolation.IsolationFailed` (no row for an infrastructure fault).
 
     Both executors (local pool, Dask) call exactly this function.
     """
+    registry.import_plugins(options.preload)  # a plugin missing on this worker: no row
     try:
-        registry.import_plugins(options.preload)
         settings = settings_for(cell.settings, time_limit=options.time_limit,
                                 precision=cell.precision)
-        result = registry.solve(cell.solver, problem, settings,
+        result = solve_isolated(cell.solver, problem, settings,
                                 warm_start=warm_start if cell.start == Start.WARM else None,
-                                repeats=options.repeats, warmup=True, isolate=True)
+                                repeats=options.repeats, warmup=True)
         row = fill_row(base_row(cell, problem, options, version, reference, digest), problem,
                        result)
         trace: dict[str, Any] = {}
@@ -133,8 +137,8 @@ def run_cell(cell: Cell, problem: Problem, options: RunOptions, version: str = "
                                      for k, v in result.diagnostics.items()}}
         return CellOutcome(row, trace)
     except BaseException as error:
-        if isinstance(error, KeyboardInterrupt | SystemExit):
-            raise
+        if isinstance(error, KeyboardInterrupt | SystemExit | IsolationFailed):
+            raise  # an interrupt, or no solver process: not a result of the solve
         status = f"{type(error).__name__}: {error}\n{traceback.format_exc(limit=3)}"
         return CellOutcome(failure_row(cell, problem, options, version, reference,
                                        Failure.ERROR, status.strip(), digest))

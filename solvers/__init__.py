@@ -1,7 +1,10 @@
 """Solvers of the C3 / C3+ subproblems and the registry that runs them.
 
 * :mod:`~c3bench.solvers.base`: the contract (``Settings``, ``Result``, ``Backend``);
-* :mod:`~c3bench.solvers.registry`: backend discovery and the guarded, isolated ``solve``;
+* :mod:`~c3bench.solvers.registry`: backend discovery and the guarded, in-process ``solve``;
+* :mod:`~c3bench.solvers.isolation`: the benchmark's solve (warm-up, repeats, a child process
+  killed on overrun) and ``IsolatedBackend`` for control loops; the child's plumbing is
+  :mod:`~c3bench.solvers.child_process`;
 * :mod:`~c3bench.solvers.backends`: the registry adapters, one module per solver family;
 * algorithms of our own: :mod:`~c3bench.solvers.equilibrated` (equilibrated Schur
   complement), :mod:`~c3bench.solvers.lcp` (Lemke, projected Gauss-Seidel),

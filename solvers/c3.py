@@ -15,8 +15,9 @@ state has no copy), with the scaled dual ``w`` and the block weights
 1. **QP step** ``z = argmin J(z) + sum_k ||z_k - (delta_k - w_k)||^2_G`` s.t. the dynamics
    (and, for C3+, ``eta_k = E x_k + F lam_k + H u_k + c``), built by
    :func:`problems.families.consensus_qp` (family ``c3plus_qp`` or ``c3_qp``) and solved by the
-   registry backend ``options.qp_backend`` called directly (no process isolation: this is a
-   control loop);
+   registry backend ``options.qp_backend`` called directly (in this process, unless
+   ``options.backends`` supplies a wrapper: the closed loop kills a QP that overruns its
+   per-step time limit, :mod:`bench.closed_loop_policy`);
 2. **projection** ``delta_k = argmin_{delta in C_k} ||delta - (z_k + w_k)||^2_G`` per step:
    C3+ copies ``x`` and ``u`` and projects each pair ``(lam_i, eta_i)`` in closed form
    (:func:`solvers.projection.c3plus_projection`); C3 solves the MIQP
@@ -119,6 +120,7 @@ from c3bench.problems.names import (
 )
 from c3bench.solvers import registry
 from c3bench.solvers.base import Backend, Result, Settings, settings_for
+from c3bench.solvers.isolation import IsolationFailed
 from c3bench.solvers.lcp import lemke
 from c3bench.solvers.residuals import complementarity_violation
 
@@ -177,6 +179,11 @@ class C3Options:
         SVD: about 10 ms at T = 7).
     keep_iterates
         Keep every iteration's ``(rho, delta, w, z)`` (for capture and plots).
+    backends
+        Backend instances used instead of the registry's for these names (e.g. an
+        :class:`~c3bench.solvers.isolation.IsolatedBackend` that kills a solve at a per-step
+        time limit, :mod:`bench.closed_loop_policy`); the caller owns and closes them. Empty
+        (default): the registry's backends, called in this process.
     """
 
     variant: str = Variant.C3PLUS
@@ -203,6 +210,7 @@ class C3Options:
     output: str = "delta"
     record_conditioning: bool = False
     keep_iterates: bool = True
+    backends: Mapping[str, Backend] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name, value, allowed in (("variant", self.variant, VARIANTS),
@@ -674,19 +682,31 @@ def _kkt_condition(problem: Problem) -> float:
     return float(np.linalg.cond(K))
 
 
+def _backend(options: C3Options, name: str) -> Backend:
+    """``options.backends[name]`` when given, else the registry's backend (``KeyError``)."""
+    return options.backends.get(name) or registry.get(name)
+
+
 def _solve_qp(backend: Backend, problem: Problem, settings: Settings
               ) -> tuple[np.ndarray | None, Result | None, str]:
-    """Call the backend directly; ``(x, result, "")`` or ``(None, result, reason)``."""
+    """Call the backend directly; ``(x, result, "")`` or ``(None, result, reason)``.
+
+    :class:`~c3bench.solvers.isolation.IsolationFailed` (a time-limited backend could not
+    start its process) is raised: an infrastructure fault, not a failed solve.
+    """
     accepted, reason = backend.accepts(problem)
     if not accepted:
         return None, None, f"{backend.name} rejects the QP: {reason}"
     try:
         result = backend.solve(problem, settings)
+    except IsolationFailed:  # no solver process could start: not the backend's failure
+        raise
     except Exception as error:  # noqa: BLE001 - any backend error is a recorded failure
         return None, None, f"{backend.name} raised {type(error).__name__}: {error}"
     x = result.x
     if x is None or np.shape(x) != (problem.n,):
-        return None, result, f"{backend.name} returned no solution ({result.status})"
+        why = f"{result.failure}: {result.status}" if result.failure else result.status
+        return None, result, f"{backend.name} returned no solution ({why})"
     x = np.asarray(x, dtype=float)
     if not np.all(np.isfinite(x)):
         return None, result, f"{backend.name} returned non-finite values ({result.status})"
@@ -713,9 +733,9 @@ def _admm(model: _Horizon, options: C3Options, delta_init: np.ndarray, w_init: n
     qp_backend: Backend | None = None
     projection_backend: Backend | None = None
     try:
-        qp_backend = registry.get(options.qp_backend)
+        qp_backend = _backend(options, options.qp_backend)
         if options.variant == Variant.C3:
-            projection_backend = registry.get(options.projection_backend)
+            projection_backend = _backend(options, options.projection_backend)
     except KeyError as error:
         status = str(error.args[0])
         ok = False

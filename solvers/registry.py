@@ -1,33 +1,30 @@
-"""Registry of solver backends and the guarded ``solve`` every caller goes through.
+"""Registry of solver backends and the guarded, in-process ``solve``.
 
 Backends are found, not listed: every module of :mod:`c3bench.solvers.backends` is imported
 once, on first use (:func:`backend_modules`; modules whose name starts with ``_`` are helpers
 and skipped), and registers its backends on import with :func:`register`. A module that fails
 to import is recorded (:func:`module_errors`), never raised. Plugins outside the package
-register the same way (:func:`import_plugins`).
+register the same way (:func:`import_plugins`; :func:`loaded_plugins` lists them so that an
+isolated child can load them again).
 
-``solve`` is where robustness lives, once for all backends: it validates the instance (finite
-data, symmetric positive semi-definite ``P``), checks that the backend is installed and takes
-the family and precision, runs the backend in a forked child process under a wall-clock limit
-(killed when it overruns), turns any exception or crash into a recorded failure, and rejects
-non-finite answers. A backend that raises
-:class:`~c3bench.problems.errors.BackendUnavailable` (from ``require`` or while solving) is a
-``Failure.UNAVAILABLE`` row. Warm-up and repeats happen inside the same child, with BLAS
-pinned to one thread, so timings exclude process start and first-call costs.
+:func:`solve` is where a solve is guarded, once for all backends: :func:`admit` checks that
+the backend is known, installed, takes the family (an ``accepts()`` that raises is a recorded
+error, not a silent refusal) and the precision, and validates the instance (finite data,
+symmetric positive semi-definite ``P``); :func:`guarded` turns any exception into a recorded
+failure (:class:`~c3bench.problems.errors.BackendUnavailable` raised while solving is a
+``Failure.UNAVAILABLE`` row); :func:`finish` rejects non-finite answers and fills the
+objective. It runs in the calling process, with no time limit: the controllers and the tests
+use it. Warm-up, repeats, BLAS pinning and the child process killed on overrun are
+:mod:`c3bench.solvers.isolation`'s job, which reuses these three steps.
 """
 
 from __future__ import annotations
 
 import importlib
-import multiprocessing
 import pkgutil
-import statistics
-import threading
-import time
 import traceback
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -35,7 +32,6 @@ from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import Failure, Family, Precision
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
-from c3bench.solvers.timing import single_thread_blas
 
 BACKEND_PACKAGE = "c3bench.solvers.backends"
 """The package whose modules define the backends (each registers its own on import)."""
@@ -109,7 +105,10 @@ def available() -> list[BackendInfo]:
     families."""
     rows = []
     for name, backend in backends().items():
-        ok, reason = backend.availability()
+        try:
+            ok, reason = backend.availability()
+        except Exception as error:  # noqa: BLE001 - a broken check makes it unavailable
+            ok, reason = False, f"availability check raised {type(error).__name__}: {error}"
         try:
             version = backend.version() if ok else "-"
         except Exception as error:  # noqa: BLE001 - recorded, never raised
@@ -145,8 +144,63 @@ def check_problem(problem: Problem) -> str:
     return ""
 
 
-def _finish(result: Result, problem: Problem) -> Result:
-    """Reject non-finite answers and fill the objective."""
+def admit(name: str, problem: Problem, settings: Settings,
+          check: bool = True) -> Backend | Result:
+    """The backend called ``name`` when it may solve ``problem``, else the failure ``Result``.
+
+    In order: known name, availability, ``accepts(problem)`` (one that raises is an explicit
+    ``Failure.ERROR``, never a silent refusal), precision, and (with ``check``) a well-posed
+    instance (:func:`check_problem`).
+    """
+    try:
+        backend = get(name)
+    except KeyError as error:
+        return Result.failed(name, problem.name, Failure.UNAVAILABLE, str(error.args[0]))
+    try:
+        ok, reason = backend.availability()
+    except Exception as error:  # noqa: BLE001 - a broken check is a recorded failure
+        return Result.failed(name, problem.name, Failure.ERROR,
+                             f"availability check raised {type(error).__name__}: {error}")
+    if not ok:
+        return Result.failed(name, problem.name, Failure.UNAVAILABLE, reason)
+    try:
+        accepted, reason = backend.accepts(problem)
+    except Exception as error:  # noqa: BLE001 - a broken accepts() is a recorded failure
+        return Result.failed(name, problem.name, Failure.ERROR,
+                             f"accepts() raised {type(error).__name__}: {error}")
+    if not accepted:
+        return Result.failed(name, problem.name, Failure.UNSUPPORTED, reason)
+    if settings.precision not in backend.precisions:
+        return Result.failed(name, problem.name, Failure.UNSUPPORTED,
+                             f"{name} does not run in {settings.precision}")
+    reason = check_problem(problem) if check else ""
+    if reason:
+        return Result.failed(name, problem.name, Failure.INVALID_INPUT, reason)
+    return backend
+
+
+def guarded(name: str, problem: Problem, call: Callable[[], Result]) -> Result:
+    """``call()``, with an exception turned into a failure ``Result``: a
+    :class:`~c3bench.problems.errors.BackendUnavailable` (found out only while solving, e.g. a
+    licence limit) is ``Failure.UNAVAILABLE``, any other ``Failure.ERROR`` with the message and
+    the innermost frames of the traceback. A call that returns no ``Result`` is an error too.
+    """
+    try:
+        result = call()
+    except BackendUnavailable as error:
+        return Result.failed(name, problem.name, Failure.UNAVAILABLE, str(error))
+    except Exception as error:  # noqa: BLE001 - recorded, never raised
+        frames = traceback.format_exc(limit=-4)
+        return Result.failed(name, problem.name, Failure.ERROR,
+                             f"{type(error).__name__}: {error}\n{frames}".strip())
+    if not isinstance(result, Result):
+        return Result.failed(name, problem.name, Failure.ERROR,
+                             f"solver returned {type(result).__name__}, not a Result")
+    return result
+
+
+def finish(result: Result, problem: Problem) -> Result:
+    """Reject a claimed solution that is missing or non-finite; fill the objective."""
     if result.found:
         if result.x is None or np.shape(result.x) != (problem.n,):
             return Result.failed(result.solver, problem.name, Failure.NON_FINITE,
@@ -163,131 +217,14 @@ def _finish(result: Result, problem: Problem) -> Result:
     return result
 
 
-SLOW_SOLVE_SECONDS = 1.0
-"""A solve slower than this is timed once after the warm-up: repeats add little accuracy."""
-
-Notify = Callable[[int], None]
-
-
-def _run_repeats(backend: Backend, problem: Problem, settings: Settings,
-                 warm_start: WarmStart | None, repeats: int, warmup: bool,
-                 notify: Notify | None = None) -> Result:
-    """Warm-up (untimed) then ``repeats`` solves; times are the medians.
-
-    When the warm-up took longer than :data:`SLOW_SOLVE_SECONDS` one timed solve is made.
-    ``notify(n)`` is told, after the warm-up, how many timed solves follow (so a watcher can
-    give each its own time limit).
-    """
-    with single_thread_blas():
-        if warmup:
-            start = time.perf_counter()
-            backend.solve(problem, settings, warm_start)
-            if time.perf_counter() - start > SLOW_SOLVE_SECONDS:
-                repeats = 1
-        if notify is not None:
-            notify(repeats)
-        results = [backend.solve(problem, settings, warm_start) for _ in range(repeats)]
-    result = results[-1]
-    if repeats > 1:
-        result.build_time = statistics.median(r.build_time for r in results)
-        result.solve_time = statistics.median(r.solve_time for r in results)
-    result.diagnostics.setdefault("timed_repeats", float(repeats))
-    return result
-
-
-Call = Callable[[Notify | None], Result]
-
-
-def _child(connection: Any, call: Call) -> None:
-    def notify(repeats: int) -> None:
-        connection.send(("warm", repeats))
-
-    try:
-        outcome: tuple[str, Any] = ("ok", call(notify))
-    except BaseException as error:  # noqa: BLE001 - recorded, never raised
-        outcome = ("error", f"{type(error).__name__}: {error}\n{traceback.format_exc(limit=4)}")
-    try:
-        connection.send(outcome)
-    finally:
-        connection.close()
-
-
-def _isolated(call: Call, time_limit: float, solver: str, problem: str) -> Result:
-    """Run ``call`` in a forked child; kill it when a solve overruns ``time_limit`` seconds.
-
-    The first solve (the warm-up) gets ``time_limit``; once the child reports it done, the
-    ``n`` timed solves get ``n * time_limit`` together.
-    """
-    context = multiprocessing.get_context("fork")
-    receiver, sender = context.Pipe(duplex=False)
-    try:
-        process = context.Process(target=_child, args=(sender, call), daemon=True)
-        process.start()
-    except AssertionError:
-        # daemonic workers may not fork children: fall back to a watched thread
-        return _threaded(call, time_limit * 4, solver, problem)
-    sender.close()
-    deadline = time.monotonic() + time_limit
-    kind, payload = "timeout", None
-    try:
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or not receiver.poll(remaining):
-                kind, payload = "timeout", None
-                break
-            try:
-                kind, payload = receiver.recv()
-            except EOFError:
-                kind, payload = "crash", None
-                break
-            if kind != "warm":
-                break
-            deadline = time.monotonic() + time_limit * int(payload)
-    finally:
-        receiver.close()
-        if process.is_alive():
-            process.kill()
-        process.join(5)
-    if kind == "ok" and isinstance(payload, Result):
-        return payload
-    if kind == "timeout":
-        return Result.failed(solver, problem, Failure.TIMEOUT,
-                             f"time limit of {time_limit:g} s exceeded; process killed",
-                             solve_time=time_limit)
-    if kind == "crash":
-        return Result.failed(solver, problem, Failure.ERROR,
-                             f"solver process died (exit code {process.exitcode})")
-    return Result.failed(solver, problem, Failure.ERROR, str(payload).strip())
-
-
-def _threaded(call: Call, time_limit: float, solver: str, problem: str) -> Result:
-    """Run ``call`` in a watched thread; abandon it after ``time_limit`` seconds in all."""
-    box: dict[str, Any] = {}
-
-    def target() -> None:
-        try:
-            box["result"] = call(None)
-        except BaseException as error:  # noqa: BLE001 - recorded, never raised
-            box["error"] = f"{type(error).__name__}: {error}"
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    thread.join(time_limit)
-    if thread.is_alive():
-        return Result.failed(solver, problem, Failure.TIMEOUT,
-                             f"time limit of {time_limit:g} s exceeded (thread abandoned)",
-                             solve_time=time_limit)
-    result = box.get("result")
-    if not isinstance(result, Result):
-        return Result.failed(solver, problem, Failure.ERROR,
-                             str(box.get("error", "solver returned no Result")))
-    return result
-
-
 def solve(name: str, problem: Problem, settings: Settings | None = None,
-          warm_start: WarmStart | None = None, repeats: int = 1, warmup: bool = False,
-          isolate: bool = True, check: bool = True) -> Result:
-    """Solve ``problem`` with backend ``name``; never raises for a solver's misbehaviour.
+          warm_start: WarmStart | None = None, check: bool = True) -> Result:
+    """Solve ``problem`` with backend ``name`` in this process; never raises for a solver's
+    misbehaviour.
+
+    No child process, no thread and no time limit: a solver that hangs hangs the caller. The
+    benchmark solves through :func:`c3bench.solvers.isolation.solve_isolated` (warm-up,
+    repeats, a killed child on overrun); controllers and tests call this directly.
 
     Parameters
     ----------
@@ -299,52 +236,30 @@ def solve(name: str, problem: Problem, settings: Settings | None = None,
         Profile, tolerance, time limit, precision (default profile when ``None``).
     warm_start
         Initial guess passed to the backend.
-    repeats, warmup
-        Timed repeats (median reported) after an optional untimed warm-up solve.
-    isolate
-        Run in a child process with the time limit enforced by killing it (default). With
-        ``False`` the solve runs in this process and the limit is enforced by abandoning a
-        watcher thread.
     check
         Validate the instance first (finiteness, symmetric PSD ``P``: an eigen-decomposition).
         Callers that built the instance themselves in a hot loop may skip it.
+
+    Returns
+    -------
+    Result
+        The backend's result, or a failure: ``unavailable`` (unknown name, missing package,
+        or :class:`~c3bench.problems.errors.BackendUnavailable` raised while solving),
+        ``unsupported`` (family or precision), ``invalid_input``, ``error`` (an exception,
+        including one from ``accepts()``), ``non_finite`` (a claimed solution that is not
+        finite).
     """
     settings = settings or Settings()
-    if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
-    try:
-        backend = get(name)
-    except KeyError as error:
-        return Result.failed(name, problem.name, Failure.UNAVAILABLE, str(error.args[0]))
-    ok, reason = backend.availability()
-    if not ok:
-        return Result.failed(name, problem.name, Failure.UNAVAILABLE, reason)
-    accepted, reason = backend.accepts(problem)
-    if not accepted:
-        return Result.failed(name, problem.name, Failure.UNSUPPORTED, reason)
-    if settings.precision not in backend.precisions:
-        return Result.failed(name, problem.name, Failure.UNSUPPORTED,
-                             f"{name} does not run in {settings.precision}")
-    reason = check_problem(problem) if check else ""
-    if reason:
-        return Result.failed(name, problem.name, Failure.INVALID_INPUT, reason)
-
-    def call(notify: Notify | None) -> Result:
-        try:
-            return _run_repeats(backend, problem, settings, warm_start, repeats, warmup,
-                                notify)
-        except BackendUnavailable as error:  # found out only while solving (e.g. a licence)
-            return Result.failed(name, problem.name, Failure.UNAVAILABLE, str(error))
-
-    if isolate:
-        result = _isolated(call, settings.time_limit, name, problem.name)
-    else:
-        budget = settings.time_limit * (repeats + (1 if warmup else 0))
-        result = _threaded(call, budget, name, problem.name)
-    return _finish(result, problem)
+    admitted = admit(name, problem, settings, check)
+    if isinstance(admitted, Result):
+        return admitted
+    backend = admitted
+    return finish(guarded(name, problem, lambda: backend.solve(problem, settings, warm_start)),
+                  problem)
 
 
-_PLUGINS_LOADED: set[str] = set()
+_PLUGINS_LOADED: dict[str, None] = {}
+"""Plugin entries loaded in this process, in loading order (a dict as an ordered set)."""
 
 
 def import_plugins(entries: Iterable[str]) -> None:
@@ -357,4 +272,10 @@ def import_plugins(entries: Iterable[str]) -> None:
         loaded = importlib.import_module(module)
         if function:
             getattr(loaded, function)()
-        _PLUGINS_LOADED.add(entry)
+        _PLUGINS_LOADED[entry] = None
+
+
+def loaded_plugins() -> tuple[str, ...]:
+    """The plugin entries loaded in this process, in order (an isolated child replays
+    them before it solves)."""
+    return tuple(_PLUGINS_LOADED)

@@ -20,8 +20,10 @@ SMALL_MPCC_META = {"scene": "planar", "l": 0.29, "dt": 0.05, "T": 1, "seed": 0,
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Run the JAX tests last: once JAX is loaded it runs threads, and forking a process
-    (the registry isolates every solve in a forked child) is then unsafe."""
+    """Run the JAX tests last: once JAX has run it holds threads, and the local pool
+    (``bench.executors``) forks its workers from this process, which is then unsafe. Solver
+    isolation does not need this order: it starts its children from a forkserver
+    (``test_isolation.py`` checks it after JAX ran)."""
     items.sort(key=lambda item: item.get_closest_marker("jax") is not None)
 
 

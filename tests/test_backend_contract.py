@@ -1,9 +1,10 @@
 """The backend contract, checked for every registered backend on every family it claims.
 
 Each (backend, family) pair solves one small real instance of that family through the guarded
-:func:`c3bench.solvers.registry.solve` (isolated in a forked child, as the benchmark runs it):
-the quick suite's smallest instance the backend accepts, and for ``mpcc`` first the horizon-1
-MPCC of ``conftest.small_mpccs`` (6 pairs: the MIQP and NLP backends stay fast). The result must
+:func:`c3bench.solvers.isolation.solve_isolated` (in a child killed on overrun, as the benchmark
+runs it): the quick suite's smallest instance the backend accepts, and for ``mpcc`` first the
+horizon-1 MPCC of ``conftest.small_mpccs`` (6 pairs: the MIQP and NLP backends stay fast). The
+result must
 
 * be a :class:`~c3bench.solvers.base.Result` naming the backend and the instance;
 * carry a valid :class:`~c3bench.problems.names.Failure` (``Failure.NONE`` whenever it claims
@@ -29,6 +30,7 @@ from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, QP_FAMILIES, Failur
 from c3bench.problems.suites import generate_suite
 from c3bench.solvers import registry
 from c3bench.solvers.base import Result, settings_for
+from c3bench.solvers.isolation import solve_isolated
 from c3bench.solvers.residuals import residuals
 
 SETTINGS = settings_for("mid_accuracy", time_limit=30.0)
@@ -86,7 +88,7 @@ def test_backend_contract(name: str, family: Family,
     if not ok:
         pytest.skip(f"{name} unavailable: {reason}")
     problem = _instance(name, family, candidates)
-    result = registry.solve(name, problem, SETTINGS)
+    result = solve_isolated(name, problem, SETTINGS)
 
     assert isinstance(result, Result)
     assert (result.solver, result.problem) == (name, problem.name)

@@ -553,7 +553,7 @@ def test_mpcc_adapter_recovers_the_mpc_and_solves(small: SimpleNamespace) -> Non
     assert mpc.force_limit == small.mpc.force_limit and mpc.horizon == small.mpc.horizon
     backend = _exact_backend()
     settings = settings_for("mid_accuracy", options={"qp_backend": backend})
-    result = registry.solve("c3plus_admm", problem, settings, isolate=False)
+    result = registry.solve("c3plus_admm", problem, settings)
     reference = solve_c3(case.lcs, small.mpc, case.x0, _exact_options())
     assert result.failure == "" and result.x is not None and result.iterations == 10
     assert len(result.trace["consensus_residual"]) == 10
@@ -562,7 +562,7 @@ def test_mpcc_adapter_recovers_the_mpc_and_solves(small: SimpleNamespace) -> Non
     assert complementarity_violation(problem, result.x) == 0.0
     assert not result.found  # no consensus in 10 iterations (||z - delta||_inf ~ 0.33)
     rolled = registry.solve("c3plus_admm", problem, Settings(
-        options={"qp_backend": backend, "solution": "rollout"}), isolate=False)
+        options={"qp_backend": backend, "solution": "rollout"}))
     assert rolled.x is not None and primal_residual(problem, rolled.x) <= 1e-8
     assert rolled.objective == pytest.approx(result.diagnostics["objective_rollout"])
 

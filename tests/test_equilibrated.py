@@ -316,8 +316,7 @@ def test_backends_on_the_quick_suite(quick_qps: list[Problem], name: str) -> Non
     for problem in quick_qps[::3]:
         x_ref, _ = kkt_reference(problem)
         options = {"ridge": 0.0} if name == "equilibrated_kkt" else {}
-        result = registry.solve(name, problem, settings_for("high_accuracy", options=options),
-                                isolate=False)
+        result = registry.solve(name, problem, settings_for("high_accuracy", options=options))
         assert result.found, result.status
         assert result.iterations is None
         scale = max(np.abs(problem.P @ result.x).max(), np.abs(problem.q).max())
@@ -336,7 +335,7 @@ def test_backends_on_the_quick_suite(quick_qps: list[Problem], name: str) -> Non
 @pytest.mark.parametrize("name", BACKENDS)
 def test_backends_run_float32(quick_qps: list[Problem], name: str) -> None:
     problem = quick_qps[0]
-    result = registry.solve(name, problem, Settings(precision="float32"), isolate=False)
+    result = registry.solve(name, problem, Settings(precision="float32"))
     assert result.found, result.status
     assert primal_residual(problem, result.x) < 1e-2
 
@@ -357,7 +356,7 @@ def test_backends_reject_inequalities_and_bounds(quick_qps: list[Problem]) -> No
         ok, reason = backend.accepts(with_bounds)
         assert not ok and "bounds" in reason
         assert backend.accepts(infinite) == (True, "")
-        result = registry.solve(name, with_bounds, isolate=False)
+        result = registry.solve(name, with_bounds)
         assert not result.found and result.failure == "unsupported"
 
 
@@ -370,20 +369,20 @@ def test_backend_reports_cholesky_failures() -> None:
     singular = Problem(name="singular", family="c3_qp", P=P, q=problem.q, A=problem.A,
                        b=problem.b)
     for name in ("equilibrated_kkt", "schur_plain"):
-        result = registry.solve(name, singular, isolate=False)
+        result = registry.solve(name, singular)
         assert not result.found and result.failure == "error"
         assert "not positive definite" in result.status
     bad_option = registry.solve("equilibrated_kkt", problem,
-                                Settings(options={"no_such_step": True}), isolate=False)
+                                Settings(options={"no_such_step": True}))
     assert not bad_option.found and "unknown equilibration step" in bad_option.status
     assert bad_option.failure == "invalid_input"
 
 
 def test_backend_ablation_options(quick_qps: list[Problem]) -> None:
     problem = quick_qps[-1]
-    full = registry.solve("equilibrated_kkt", problem, isolate=False)
+    full = registry.solve("equilibrated_kkt", problem)
     off = registry.solve("equilibrated_kkt", problem,
-                         Settings(options={"ablation": "no_projection"}), isolate=False)
+                         Settings(options={"ablation": "no_projection"}))
     assert full.diagnostics["violation_after_projection"] < 1e-12
     assert off.diagnostics["violation_after_projection"] == \
         off.diagnostics["violation_before_projection"] > 1e-6
@@ -392,9 +391,8 @@ def test_backend_ablation_options(quick_qps: list[Problem]) -> None:
 def test_diagnostics_can_be_skipped(quick_qps: list[Problem]) -> None:
     problem = quick_qps[0]
     for name in BACKENDS:
-        full = registry.solve(name, problem, isolate=False)
-        lean = registry.solve(name, problem, Settings(options={"diagnostics": False}),
-                              isolate=False)
+        full = registry.solve(name, problem)
+        lean = registry.solve(name, problem, Settings(options={"diagnostics": False}))
         np.testing.assert_array_equal(full.x, lean.x)
         assert np.isfinite(full.diagnostics["cond_schur_raw"])
         assert np.isnan(lean.diagnostics["cond_schur_raw"])

@@ -98,8 +98,8 @@ def _exact_options(**changes: object) -> C3Options:
 def test_riccati_backend_matches_reference_float64(quick_qps: list[Problem]) -> None:
     reference = _reference_backend()
     for problem in quick_qps:
-        ours = registry.solve("c3plus_riccati", problem, Settings(), isolate=False)
-        ref = registry.solve(reference, problem, settings_for("high_accuracy"), isolate=False)
+        ours = registry.solve("c3plus_riccati", problem, Settings())
+        ref = registry.solve(reference, problem, settings_for("high_accuracy"))
         assert ours.found and ref.found, (ours.status, ref.status)
         figures = residuals(problem, ours.x, ours.y)
         assert figures.primal_relative <= MID, problem.name
@@ -111,8 +111,7 @@ def test_riccati_backend_matches_reference_float64(quick_qps: list[Problem]) -> 
 
 def test_riccati_backend_float32_restores_equalities(quick_qps: list[Problem]) -> None:
     for problem in quick_qps:
-        result = registry.solve("c3plus_riccati", problem, Settings(precision="float32"),
-                                isolate=False)
+        result = registry.solve("c3plus_riccati", problem, Settings(precision="float32"))
         assert result.found
         assert primal_residual(problem, result.x) <= 1e-4, problem.name
         exact, _ = solve_c3plus_qp(problem)
@@ -136,11 +135,11 @@ def test_riccati_backend_rejects_other_structures(quick_qps: list[Problem]) -> N
     coupled = replace(problem, P=problem.P.copy())
     ns = 10 + 6 + 2 + 6
     coupled.P[0, ns] = coupled.P[ns, 0] = 1e-3
-    result = registry.solve("c3plus_riccati", coupled, Settings(), isolate=False, check=False)
+    result = registry.solve("c3plus_riccati", coupled, Settings(), check=False)
     assert not result.found and "time steps" in result.status
     moved = replace(problem, b=problem.b.copy())
     moved.b[12] += 1.0  # a dynamics row no longer equal to the LCS's d
-    result = registry.solve("c3plus_riccati", moved, Settings(), isolate=False)
+    result = registry.solve("c3plus_riccati", moved, Settings())
     assert not result.found and result.failure == "unsupported"
     bounded = replace(problem, lb=np.full(problem.n, -1e3), ub=np.full(problem.n, 1e3))
     accepted, reason = registry.get("c3plus_riccati").accepts(bounded)

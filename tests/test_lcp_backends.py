@@ -80,7 +80,7 @@ def test_agrees_with_enumeration(quick_lcps: list[Problem], name: str) -> None:
     settings = settings_for("high_accuracy")
     for problem in cases(quick_lcps):
         reference = enumerate_lcp(problem.P, problem.q)
-        result = registry.solve(name, problem, settings, isolate=False)
+        result = registry.solve(name, problem, settings)
         assert result.found, (problem.name, result.status)
         assert result.failure == ""
         check_solution(problem, result.x, reference, 1e-7)
@@ -100,8 +100,8 @@ def test_lemke_and_pgs_agree_at_every_profile(quick_lcps: list[Problem]) -> None
     for problem in cases(quick_lcps):
         for profile in ("default", "mid_accuracy"):
             settings = settings_for(profile)
-            lemke = registry.solve("lemke", problem, settings, isolate=False)
-            pgs = registry.solve("pgs", problem, settings, isolate=False)
+            lemke = registry.solve("lemke", problem, settings)
+            pgs = registry.solve("pgs", problem, settings)
             assert lemke.found and pgs.found
             found = residuals(problem, pgs.x, pgs.y, pgs.z, pgs.z_box)
             # PGS stops on the natural residual and the gap lam^T w, both below tolerance
@@ -113,25 +113,24 @@ def test_lemke_and_pgs_agree_at_every_profile(quick_lcps: list[Problem]) -> None
 def test_pgs_trace(quick_lcps: list[Problem]) -> None:
     problem = quick_lcps[0]
     settings = settings_for("high_accuracy")
-    result = registry.solve("pgs", problem, settings, isolate=False)
+    result = registry.solve("pgs", problem, settings)
     trace = result.trace["natural_residual"]
     assert len(trace) == result.iterations > 1
     assert trace[-1] <= settings.tolerance < trace[0]
     assert trace[-1] == pytest.approx(result.diagnostics["natural_residual"])
     # warm-started from its own answer it stops after one sweep
-    again = registry.solve("pgs", problem, settings, warm_start=WarmStart(x=result.x),
-                           isolate=False)
+    again = registry.solve("pgs", problem, settings, warm_start=WarmStart(x=result.x))
     assert again.found and again.iterations == 1
 
 
 def test_pgs_fails_cleanly_on_a_zero_diagonal() -> None:
     M = np.diag([1.0, 0.0, 2.0])  # PSD with M_11 = 0: PGS cannot divide by it
     problem = lcp_problem("zero-diagonal", M, np.array([-1.0, 1.0, -1.0]))
-    result = registry.solve("pgs", problem, isolate=False)
+    result = registry.solve("pgs", problem)
     assert not result.found and result.failure == "error"
     assert "M_ii > 0" in result.status
     # Lemke solves it (q_1 >= 0 there)
-    lemke = registry.solve("lemke", problem, isolate=False)
+    lemke = registry.solve("lemke", problem)
     assert lemke.found
     np.testing.assert_allclose(lemke.x, [1.0, 0.0, 0.5], atol=1e-12)
 
@@ -139,14 +138,13 @@ def test_pgs_fails_cleanly_on_a_zero_diagonal() -> None:
 def test_unbounded_lcp_is_a_failure() -> None:
     # M_11 = 0 and q_1 < 0: the QP is unbounded below, the LCP has no solution
     problem = lcp_problem("unbounded", np.diag([1.0, 0.0]), np.array([-1.0, -1.0]))
-    lemke = registry.solve("lemke", problem, isolate=False)
+    lemke = registry.solve("lemke", problem)
     assert not lemke.found and lemke.failure == "error" and "ray" in lemke.status
 
 
 def test_pgs_iteration_limit_is_a_failure(quick_lcps: list[Problem]) -> None:
     problem = quick_lcps[0]
-    result = registry.solve("pgs", problem, settings_for("high_accuracy", max_iterations=2),
-                            isolate=False)
+    result = registry.solve("pgs", problem, settings_for("high_accuracy", max_iterations=2))
     assert not result.found and "limit" in result.status
     assert result.iterations == 2 and len(result.trace["natural_residual"]) == 2
 
@@ -168,9 +166,9 @@ def test_accepts_only_the_lcp_form(quick_lcps: list[Problem]) -> None:
         assert not ok and "lb = 0" in reason
         ok, reason = backend.accepts(capped)
         assert not ok and "upper" in reason
-        result = registry.solve(name, capped, isolate=False)
+        result = registry.solve(name, capped)
         assert result.failure == "unsupported"
-        float32 = registry.solve(name, problem, Settings(precision="float32"), isolate=False)
+        float32 = registry.solve(name, problem, Settings(precision="float32"))
         assert float32.failure == "unsupported"
 
 
@@ -186,7 +184,7 @@ def unsolvable_lcps() -> list[Problem]:
 def test_lemke_never_claims_an_unsolvable_lcp() -> None:
     settings = settings_for("high_accuracy")
     for problem in unsolvable_lcps():
-        result = registry.solve("lemke", problem, settings, isolate=False)
+        result = registry.solve("lemke", problem, settings)
         assert not result.found and result.failure == "error", result.status
 
 
@@ -239,7 +237,7 @@ def test_solvable_lcp_still_passes() -> None:
     problem = random_psd_lcp(3)
     ref = compute_reference(problem, "digest", plan_for("lcp"), time_limit=30.0)
     assert ref.available and ref.solver == "lemke"
-    result = registry.solve("lemke", problem, settings_for("default"), isolate=False)
+    result = registry.solve("lemke", problem, settings_for("default"))
     assert result.found and _accept(problem, result)[0]
     row = store.empty_row()
     row.update({"family": "lcp", "tolerance": 1e-6, "reference_solver": ref.solver,

@@ -15,6 +15,7 @@ from c3bench.problems.names import Failure
 from c3bench.solvers import registry
 from c3bench.solvers.backends.gurobi_backend import GurobiMIQP
 from c3bench.solvers.base import Settings, settings_for
+from c3bench.solvers.isolation import solve_isolated
 from c3bench.solvers.modes import enumerate_modes, refine_on_face, search_modes, solve_mode
 from c3bench.solvers.projection import c3plus_projection
 from c3bench.solvers.residuals import complementarity_violation, cost_error, primal_residual
@@ -121,7 +122,7 @@ def test_face_refinement_honours_nearly_dependent_rows() -> None:
 
 # --- SCIP, Bonmin, Gurobi against enumeration ----------------------------------------------
 def _check_against_enumeration(name: str, problem: Problem, settings: Settings = MID) -> None:
-    result = registry.solve(name, problem, settings)
+    result = solve_isolated(name, problem, settings)
     assert result.found, result.status
     assert result.y is None and result.z is None
     assert result.diagnostics["big_m"] == 0.0
@@ -147,7 +148,7 @@ def test_scip_equals_enumeration_on_small_mpccs(small_mpccs: dict[str, Problem],
 def test_scip_without_polish_is_close_and_reports_gap(small_mpccs: dict[str, Problem]
                                                       ) -> None:
     problem = small_mpccs["h1-1"]
-    result = registry.solve("scip", problem, MID.with_(options={"polish": False}))
+    result = solve_isolated("scip", problem, MID.with_(options={"polish": False}))
     assert result.found, result.status
     assert "polished" not in result.diagnostics
     assert 0.0 <= result.diagnostics["mip_gap"] <= 1e-6
@@ -183,7 +184,7 @@ def test_gurobi_reports_the_licence_size_limit() -> None:
     n = 2100  # the pip wheel's licence stops at 2000 variables
     pairs = [(i, i + 1) for i in range(0, 20, 2)]
     big = _toy(np.eye(n), -np.ones(n), pairs)
-    result = registry.solve("gurobi", big, MID, isolate=False)
+    result = registry.solve("gurobi", big, MID)
     if result.found:
         pytest.skip("this Gurobi licence is not size-limited")
     assert result.failure == Failure.UNAVAILABLE
@@ -201,7 +202,7 @@ def test_gurobi_reports_missing_package(monkeypatch: pytest.MonkeyPatch,
     assert not ok and reason.startswith("cannot import gurobipy")
     with pytest.raises(BackendUnavailable):
         GurobiMIQP().require()
-    result = registry.solve("gurobi", pick(quick, *PROJECTIONS[0]), MID)
+    result = solve_isolated("gurobi", pick(quick, *PROJECTIONS[0]), MID)
     assert not result.found and result.failure == Failure.UNAVAILABLE
     assert result.status == reason
 
@@ -254,10 +255,10 @@ def test_closed_form_rule_ties_and_dtype() -> None:
 def test_closed_form_equals_scip_and_enumeration(quick: dict[str, Problem], position: int
                                                  ) -> None:
     problem = pick(quick, C3PLUS, position)
-    closed = registry.solve("c3plus_closed_form", problem, MID, isolate=False)
+    closed = registry.solve("c3plus_closed_form", problem, MID)
     assert closed.found and closed.iterations == 0
     x_enum, f_enum = enumerate_modes(problem)
-    scip = registry.solve("scip", problem, MID)
+    scip = solve_isolated("scip", problem, MID)
     assert cost_error(closed.objective, f_enum) < 1e-9
     assert cost_error(scip.objective, f_enum) < 1e-6
     np.testing.assert_allclose(closed.x, x_enum, atol=1e-6)
@@ -266,7 +267,7 @@ def test_closed_form_equals_scip_and_enumeration(quick: dict[str, Problem], posi
 
 def test_closed_form_rejects_c3_variant(quick: dict[str, Problem]) -> None:
     problem = pick(quick, C3, 0)
-    result = registry.solve("c3plus_closed_form", problem, MID)
+    result = solve_isolated("c3plus_closed_form", problem, MID)
     assert result.failure == "unsupported"
     assert "c3plus variant" in result.status and "'c3'" in result.status
 
@@ -280,7 +281,7 @@ def test_closed_form_is_globally_optimal_on_every_pair_mode() -> None:
     problem = _toy(2 * np.diag(w), -2 * w * v, pairs)
     problem.meta["variant"] = "c3plus"
     problem.objective_offset = float(np.sum(w * v * v))
-    closed = registry.solve("c3plus_closed_form", problem, MID, isolate=False)
+    closed = registry.solve("c3plus_closed_form", problem, MID)
     best = min(solve_mode(problem, [pair[c] for pair, c in zip(pairs, choice, strict=True)]
                           ).objective
                for choice in itertools.product((0, 1), repeat=3))
@@ -296,9 +297,9 @@ def test_scip_full_horizon_matches_gurobi(quick: dict[str, Problem], position: i
     if not _gurobi_usable():
         pytest.skip("no Gurobi to compare with")
     problem = pick(quick, "mpcc-s", position)
-    gurobi = registry.solve("gurobi", problem, MID)
+    gurobi = solve_isolated("gurobi", problem, MID)
     assert gurobi.found, gurobi.status
-    scip = registry.solve("scip", problem, settings_for("default", time_limit=240.0))
+    scip = solve_isolated("scip", problem, settings_for("default", time_limit=240.0))
     assert scip.x is not None
     assert complementarity_violation(problem, scip.x) < 1e-9
     assert cost_error(scip.objective, gurobi.objective) < 1e-3

@@ -9,6 +9,7 @@ from conftest import enumerated_optimum, pick
 from c3bench.problems.instance import Problem
 from c3bench.solvers import registry
 from c3bench.solvers.base import settings_for
+from c3bench.solvers.isolation import solve_isolated
 from c3bench.solvers.residuals import complementarity_violation, primal_residual
 
 MID = settings_for("mid_accuracy", time_limit=60.0)
@@ -19,7 +20,7 @@ MID = settings_for("mid_accuracy", time_limit=60.0)
 def _check_local_solution(name: str, problem: Problem) -> float:
     """Found, complementary, feasible, and not below the global optimum; returns the
     relative excess over the optimum."""
-    result = registry.solve(name, problem, MID)
+    result = solve_isolated(name, problem, MID)
     assert result.found, result.status
     assert complementarity_violation(problem, result.x) <= 1e-6
     scale = 1.0 if problem.b is None else max(1.0, float(np.abs(problem.b).max()))
@@ -57,7 +58,7 @@ def test_ipopt_finds_the_global_optimum_of_the_c3plus_projection(quick: dict[str
 
 def test_scholtes_trace_drives_eps_down(small_mpccs: dict[str, Problem]) -> None:
     problem = small_mpccs["h1-0"]
-    result = registry.solve("ipopt_scholtes", problem, MID)
+    result = solve_isolated("ipopt_scholtes", problem, MID)
     eps = result.trace["eps"]
     np.testing.assert_allclose(eps, 0.1 * 0.1 ** np.arange(len(eps)), rtol=1e-12)
     assert eps[-1] == pytest.approx(1e-8)
@@ -72,7 +73,7 @@ def test_scholtes_trace_drives_eps_down(small_mpccs: dict[str, Problem]) -> None
 def test_penalty_trace_raises_rho_until_complementary(small_mpccs: dict[str, Problem]
                                                       ) -> None:
     problem = small_mpccs["h2-1"]
-    result = registry.solve("ipopt_penalty", problem,
+    result = solve_isolated("ipopt_penalty", problem,
                             MID.with_(options={"rho0": 1e-2, "polish": False}))
     rho = result.trace["rho"]
     np.testing.assert_allclose(rho, 1e-2 * 10.0 ** np.arange(len(rho)))
@@ -85,7 +86,7 @@ def test_penalty_trace_raises_rho_until_complementary(small_mpccs: dict[str, Pro
 def test_unfinished_relaxation_is_not_reported_found(small_mpccs: dict[str, Problem]) -> None:
     problem = small_mpccs["h1-0"]
     settings = MID.with_(options={"eps0": 1.0, "eps_min": 1.0, "polish": False})
-    result = registry.solve("ipopt_scholtes", problem, settings)
+    result = solve_isolated("ipopt_scholtes", problem, settings)
     assert result.trace["eps"] == [1.0]
     violation = complementarity_violation(problem, result.x)
     assert violation > 1e-6

@@ -25,6 +25,7 @@ from c3bench.solvers import registry
 from c3bench.solvers.backends._qp_forms import ConeForm, QPBackend, TwoSidedForm
 from c3bench.solvers.backends.casadi_conic import OCPRows
 from c3bench.solvers.base import Result, WarmStart, settings_for
+from c3bench.solvers.isolation import solve_isolated
 from c3bench.solvers.residuals import cost_error, dual_residual, duality_gap, primal_residual
 
 QP_BACKENDS: list[QPBackend] = [backend for backend in registry.backends().values()
@@ -60,7 +61,7 @@ def _skip_unless_available(name: str) -> None:
 def _quiet_solve(name: str, problem: Problem, profile: str, **kwargs: object) -> Result:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return registry.solve(name, problem, settings_for(profile), isolate=False, **kwargs)
+        return registry.solve(name, problem, settings_for(profile), **kwargs)
 
 
 @pytest.mark.parametrize("name", BACKEND_NAMES)
@@ -78,8 +79,7 @@ def test_closed_form_solution_and_duals(name: str) -> None:
 
 
 def test_closed_form_in_isolated_child() -> None:
-    result = registry.solve("osqp", tiny_problem(), settings_for("high_accuracy"),
-                            isolate=True)
+    result = solve_isolated("osqp", tiny_problem(), settings_for("high_accuracy"))
     assert result.found, result.status
     np.testing.assert_allclose(result.z_box, TINY_Z_BOX, atol=1e-6)
     np.testing.assert_allclose(result.y, TINY_Y, atol=1e-6)
@@ -91,8 +91,7 @@ def test_infeasible_problem_is_a_recorded_failure(name: str) -> None:
     problem = Problem(name="infeasible", family="c3_qp", P=np.eye(2), q=np.zeros(2),
                       A=np.array([[1.0, 1.0]]), b=np.array([1.0]),
                       G=np.array([[1.0, 1.0]]), h=np.array([0.0]))
-    result = registry.solve(name, problem, settings_for("mid_accuracy", time_limit=5.0),
-                            isolate=False)
+    result = registry.solve(name, problem, settings_for("mid_accuracy", time_limit=5.0))
     assert not result.found
     assert result.status and result.failure
 

@@ -1,9 +1,11 @@
-"""The guarded solve: every failure path becomes a recorded failure, never an exception."""
+"""The guarded solve: every failure path becomes a recorded failure, never an exception, in
+this process (``registry.solve``) and in an isolated child (``isolation.solve_isolated``)."""
 
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,7 @@ from c3bench.problems.instance import Problem
 from c3bench.problems.names import Failure
 from c3bench.solvers import registry
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
+from c3bench.solvers.isolation import solve_isolated
 from c3bench.solvers.residuals import residuals
 
 
@@ -49,6 +52,15 @@ class Hangs(Backend):
               warm_start: WarmStart | None = None) -> Result:
         time.sleep(60)
         raise AssertionError("unreachable")
+
+
+class BrokenAccepts(DenseKKT):
+    """Its ``accepts`` raises: an explicit failure, never a silently missing cell."""
+
+    name = "test_broken_accepts"
+
+    def accepts(self, problem: Problem) -> tuple[bool, str]:
+        raise KeyError("meta has no 'variant'")
 
 
 class ReturnsNaN(Backend):
@@ -93,7 +105,7 @@ class NoPlugin(Backend):
 def fakes(monkeypatch: pytest.MonkeyPatch) -> None:
     registry.backends()  # load the real ones first
     for backend in (DenseKKT(), Raises(), Hangs(), ReturnsNaN(), Missing(), NoLicence(),
-                    NoPlugin()):
+                    NoPlugin(), BrokenAccepts()):
         monkeypatch.setitem(registry._BACKENDS, backend.name, backend)
 
 
@@ -105,33 +117,58 @@ def equality_qp(P: np.ndarray | None = None, A: np.ndarray | None = None,
     return Problem("eq", "c3_qp", P=P, q=np.array([1.0, 0.0, -1.0]), A=A, b=b)
 
 
-def test_correct_backend_passes_through() -> None:
+SOLVES = (registry.solve, solve_isolated)
+"""In this process, and in an isolated child: the same guard, the same answers."""
+
+
+@pytest.mark.parametrize("solve", SOLVES)
+def test_correct_backend_passes_through(solve: Callable[..., Result]) -> None:
     problem = equality_qp()
-    for isolate in (True, False):
-        result = registry.solve("test_dense_kkt", problem, isolate=isolate)
-        assert result.found and result.failure == ""
-        figures = residuals(problem, result.x, result.y)
-        assert figures.primal < 1e-12 and figures.dual < 1e-12
-        assert result.objective == pytest.approx(problem.objective(result.x))
+    result = solve("test_dense_kkt", problem)
+    assert result.found and result.failure == ""
+    figures = residuals(problem, result.x, result.y)
+    assert figures.primal < 1e-12 and figures.dual < 1e-12
+    assert result.objective == pytest.approx(problem.objective(result.x))
 
 
-def test_backend_that_raises_is_a_recorded_failure() -> None:
-    result = registry.solve("test_raises", equality_qp())
+@pytest.mark.parametrize("solve", SOLVES)
+def test_backend_that_raises_is_a_recorded_failure(solve: Callable[..., Result]) -> None:
+    result = solve("test_raises", equality_qp())
     assert not result.found and result.failure == "error"
-    assert "solver exploded" in result.status
+    assert result.status.startswith("RuntimeError: solver exploded")
+    assert "test_registry.py" in result.status  # where it was raised
 
 
+@pytest.mark.timeout(60)
 def test_backend_that_hangs_is_killed_at_the_time_limit() -> None:
     start = time.perf_counter()
-    result = registry.solve("test_hangs", equality_qp(), Settings(time_limit=0.5))
+    result = solve_isolated("test_hangs", equality_qp(), Settings(time_limit=0.5))
     assert time.perf_counter() - start < 10
     assert not result.found and result.failure == "timeout"
     assert "time limit" in result.status
 
 
-def test_non_finite_answer_is_rejected() -> None:
-    result = registry.solve("test_nan", equality_qp())
+@pytest.mark.parametrize("solve", SOLVES)
+def test_non_finite_answer_is_rejected(solve: Callable[..., Result]) -> None:
+    result = solve("test_nan", equality_qp())
     assert not result.found and result.failure == "non_finite"
+
+
+@pytest.mark.parametrize("solve", SOLVES)
+def test_an_accepts_that_raises_is_an_error_row(solve: Callable[..., Result]) -> None:
+    result = solve("test_broken_accepts", equality_qp())
+    assert result.failure == Failure.ERROR
+    assert result.status == "accepts() raised KeyError: \"meta has no 'variant'\""
+
+
+def test_an_accepts_that_raises_still_plans_its_cells() -> None:
+    """Planning keeps the cell, so the run stores the error instead of dropping it."""
+    from c3bench.bench.planning import plan_cells  # here: isolated children import this file
+
+    plan = plan_cells([equality_qp()], ["test_broken_accepts", "test_dense_kkt"],
+                      ["default"], ["float64"], ["cold"], {})
+    assert sorted(cell.solver for cell in plan.cells) == ["test_broken_accepts",
+                                                          "test_dense_kkt"]
 
 
 def test_non_psd_objective_is_invalid_input() -> None:
@@ -167,8 +204,8 @@ def test_infeasible_equalities_fail_in_a_real_backend() -> None:
         if backend is None or not backend.availability()[0]:
             continue
         ran += 1
-        result = registry.solve(name, problem, Settings(profile="high_accuracy",
-                                                        tolerance=1e-9))
+        result = solve_isolated(name, problem, Settings(profile="high_accuracy",
+                                                       tolerance=1e-9))
         if result.found:
             # a claimed solution must at least be visibly infeasible by residuals
             assert residuals(problem, result.x).primal > 0.1
@@ -193,7 +230,7 @@ def test_unbounded_problem_is_never_a_success() -> None:
         if backend is None or not backend.availability()[0]:
             continue
         ran += 1
-        result = registry.solve(name, problem, Settings(time_limit=5.0))
+        result = solve_isolated(name, problem, Settings(time_limit=5.0))
         if result.found:
             figures = residuals(problem, result.x, result.y, result.z, result.z_box)
             assert figures.dual_relative > 1e-3, name  # the success check rejects it
@@ -203,8 +240,8 @@ def test_unbounded_problem_is_never_a_success() -> None:
 
 def test_backend_unavailable_is_an_unavailable_row() -> None:
     problem = equality_qp()
-    for isolate in (True, False):
-        result = registry.solve("test_no_licence", problem, isolate=isolate)
+    for solve in SOLVES:
+        result = solve("test_no_licence", problem)
         assert not result.found and result.failure == Failure.UNAVAILABLE
         assert result.status == "licence size limit: model too large"
     result = registry.solve("test_no_plugin", problem)
@@ -222,7 +259,7 @@ def test_backend_modules_are_discovered() -> None:
     assert {"osqp_backend", "kkt", "lcp", "c3_admm", "c3plus_riccati"} <= short
     assert not any(name.startswith("_") for name in short)
     fakes = {"test_dense_kkt", "test_raises", "test_hangs", "test_nan", "test_missing",
-             "test_no_licence", "test_no_plugin"}
+             "test_no_licence", "test_no_plugin", "test_broken_accepts"}
     for name, backend in registry.backends().items():
         if name not in fakes:
             assert type(backend).__module__ in modules, (name, type(backend).__module__)
