@@ -21,11 +21,13 @@ and reports the failure-mode label of every combination as a grid.
 
 Schema of ``results.parquet`` (one row per case): ``case``, ``group``, ``controller``,
 ``qp_backend``, ``projection``, ``rho_schedule``, ``model_l``, ``samples``, ``weighting``,
-``feedback``, ``dt``, ``q_cube_pose``, ``seed``, ``duration``, ``success``, ``angle_error``
-(rad, at the end), ``final_angle`` (rad), ``failure_mode`` (0-5), ``failure_label``,
-``failure_reason``, ``median_step_time``, ``p95_step_time``, ``median_lcs_time``,
-``median_solve_time`` (s), ``nan_count``, ``fallback_count``, ``steps``, ``error`` (why a
-case produced no run, else '').
+``feedback``, ``qp_time_limit`` (s per QP solve, NaN when the QP runs in-process), ``dt``,
+``q_cube_pose``, ``seed``, ``duration``, ``success``, ``angle_error`` (rad, at the end),
+``final_angle`` (rad), ``failure_mode`` (0-5), ``failure_label``, ``failure_reason``,
+``median_step_time``, ``p95_step_time``, ``median_lcs_time``, ``median_solve_time`` (s),
+``nan_count``, ``fallback_count``, ``steps``, ``qp_failure_steps``, ``qp_failure`` (steps with
+a failed QP solve or projection, and the first reason), ``error`` (why a case produced no
+run, else '').
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -51,6 +54,7 @@ from c3bench.problems.config import Config, load_config
 from c3bench.problems.errors import RenderUnavailable
 from c3bench.problems.instance import atomic_write_bytes
 from c3bench.problems.scene import build_scene, home_state
+from c3bench.solvers.isolation import IsolationFailed
 
 SWEEP_DTS: tuple[float, ...] = (0.05, 0.1)
 """Control periods of the sweep (s) unless chosen otherwise."""
@@ -187,15 +191,17 @@ def sweep_cases(dts: Sequence[float] = SWEEP_DTS,
 def case_row(case: Case) -> dict[str, Any]:
     """The identifying columns of a case."""
     spec = case.spec
+    fast = spec.controller.startswith("c3plus-fast")
     return {"case": case.name, "group": case.group, "controller": spec.controller,
-            "qp_backend": "riccati" if spec.controller.startswith("c3plus-fast")
-            else spec.qp_backend,
+            "qp_backend": "riccati" if fast else spec.qp_backend,
             "projection": spec.projection if spec.controller == "c3" else "closed_form",
             "rho_schedule": spec.rho_schedule,
             "model_l": float("nan") if spec.robust else spec.model_l,
             "samples": spec.samples if spec.robust else 1,
             "weighting": spec.weighting if spec.robust else False,
             "feedback": spec.feedback,
+            "qp_time_limit": float("nan") if fast or spec.qp_time_limit is None
+            else spec.qp_time_limit,
             "dt": case.dt, "q_cube_pose": case.q_cube_pose, "seed": case.seed,
             "duration": case.duration}
 
@@ -203,8 +209,10 @@ def case_row(case: Case) -> dict[str, Any]:
 def run_case(case: Case, cell_dir: str) -> dict[str, Any]:
     """Run one case and write its cell (:func:`bench.closed_loop.write_run`, summary = the row).
 
-    A case whose controller cannot be built or crashes outside the control loop becomes a row
-    with ``error`` set; it never stops the suite.
+    A case whose controller cannot be built (e.g. its QP backend is unknown or not installed
+    here) or crashes outside the control loop becomes a row with ``error`` set and no stored
+    cell; it never stops the suite. :class:`~c3bench.solvers.isolation.IsolationFailed` (no
+    solver process could start) is raised: the case is missing, not a row.
     """
     base = load_config()
     row = case_row(case)
@@ -214,6 +222,8 @@ def run_case(case: Case, cell_dir: str) -> dict[str, Any]:
     try:
         trajectory, records, outcome = run_closed_loop(case.spec, config, case.duration,
                                                        x0=case.initial_state(config))
+    except IsolationFailed:  # infrastructure, not the case's result: the case is missing
+        raise
     except Exception as error:  # noqa: BLE001 - recorded as the case's row
         row.update({"success": False, "error": f"{type(error).__name__}: {error}",
                     "failure_mode": -1, "failure_label": "error"})
@@ -227,11 +237,18 @@ def run_case(case: Case, cell_dir: str) -> dict[str, Any]:
 
 @dataclass
 class SuiteRun:
-    """Where a closed-loop suite lives and what it did."""
+    """Where a closed-loop suite lives and what it did.
+
+    ``missing`` counts the cases of this run that stored nothing because the infrastructure
+    failed (a pool worker died outside the run, the Dask scheduler went away);
+    ``missing_reasons`` are their first distinct reasons. The next run completes them.
+    """
 
     directory: Path
     rows: list[dict[str, Any]] = field(default_factory=list)
     skipped: int = 0
+    missing: int = 0
+    missing_reasons: list[str] = field(default_factory=list)
 
 
 def _stored(cell_dir: Path, case: Case) -> dict[str, Any] | None:
@@ -244,58 +261,73 @@ def _stored(cell_dir: Path, case: Case) -> dict[str, Any] | None:
         return None
 
 
+def _write_table(directory: Path, rows: list[dict[str, Any]], names: Sequence[str]) -> None:
+    """``results.parquet`` / ``results.csv``: the rows in case order."""
+    order = {name: i for i, name in enumerate(names)}
+    rows.sort(key=lambda row: order.get(row["case"], len(order)))
+    frame = pd.DataFrame(rows)
+    atomic_write_bytes(directory / "results.parquet", frame.to_parquet(index=False))
+    atomic_write_bytes(directory / "results.csv", frame.to_csv(index=False).encode())
+
+
 def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
               scheduler: str | None = None, rerun: bool = False,
               progress: bool = True) -> SuiteRun:
-    """Run cases (skipping stored ones unless ``rerun``) and consolidate ``results.parquet``."""
-    from c3bench.bench.executors import DaskPool, Executor, LocalPool
+    """Run cases (skipping stored ones unless ``rerun``) and consolidate ``results.parquet``.
+
+    The directory is locked for the run (:class:`bench.lock.DirectoryLock`); SIGTERM stops it
+    like Ctrl-C (:class:`~c3bench.problems.errors.Terminated`), and the finished cases are
+    consolidated either way. A case whose worker failed outside the run is not a row: it is
+    retried once, then counted in :attr:`SuiteRun.missing`.
+    """
+    from c3bench.bench.executors import DaskPool, Executor, LocalPool, note_reason
+    from c3bench.bench.lock import exclusive_run, stopped_message
 
     directory = Path(directory)
-    cell_dir = directory / "cells"
-    cell_dir.mkdir(parents=True, exist_ok=True)
     cases = list(cases)
     names = [case.name for case in cases]
     if len(set(names)) != len(names):
         raise ValueError("case names must be unique")
-    run = SuiteRun(directory)
-    todo = []
-    for case in cases:
-        stored = None if rerun else _stored(cell_dir, case)
-        if stored is not None:
-            run.rows.append(stored)
-            run.skipped += 1
-        else:
-            todo.append(case)
-    pool: Executor = DaskPool(scheduler) if scheduler else LocalPool(
-        jobs, log_path=directory / "solver_output.log")
-    watchdog = 1800.0
-    tasks = [(case.name, run_case, (case, str(cell_dir)), watchdog) for case in todo]
-    bar = None
-    if progress and tasks:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(tasks), desc=f"closed loop {directory.name}", unit="run")
-    by_name = {case.name: case for case in todo}
-    try:
-        for result in pool.run(tasks):
-            if result.ok:
-                run.rows.append(result.value)
+    with exclusive_run(directory):
+        cell_dir = directory / "cells"
+        cell_dir.mkdir(parents=True, exist_ok=True)
+        run = SuiteRun(directory)
+        todo = []
+        for case in cases:
+            stored = None if rerun else _stored(cell_dir, case)
+            if stored is not None:
+                run.rows.append(stored)
+                run.skipped += 1
             else:
-                row = case_row(by_name[result.key])
-                row.update({"success": False, "failure_mode": -1, "failure_label": "error",
-                            "error": result.reason})
-                run.rows.append(row)
+                todo.append(case)
+        pool: Executor = DaskPool(scheduler) if scheduler else LocalPool(
+            jobs, log_path=directory / "solver_output.log")
+        watchdog = 1800.0
+        tasks = [(case.name, run_case, (case, str(cell_dir)), watchdog) for case in todo]
+        bar = None
+        if progress and tasks:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(tasks), desc=f"closed loop {directory.name}", unit="run")
+        try:
+            for result in pool.run(tasks):
+                if result.ok and isinstance(result.value, dict):
+                    run.rows.append(result.value)
+                else:
+                    run.missing += 1
+                    note_reason(run.missing_reasons, result.reason or "no row returned")
+                if bar is not None:
+                    bar.update(1)
+        except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
+            print("\n" + stopped_message(stop, f"{len(run.rows)} runs", cell_dir),
+                  file=sys.stderr)
+            raise
+        finally:
             if bar is not None:
-                bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
-        pool.close()
-    order = {name: i for i, name in enumerate(names)}
-    run.rows.sort(key=lambda row: order.get(row["case"], len(order)))
-    frame = pd.DataFrame(run.rows)
-    frame.to_parquet(directory / "results.parquet", index=False)
-    frame.to_csv(directory / "results.csv", index=False)
+                bar.close()
+            pool.close()
+            if run.rows:
+                _write_table(directory, run.rows, names)
     return run
 
 

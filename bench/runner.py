@@ -2,25 +2,33 @@
 
 The parts live in modules of one job each: :mod:`bench.planning` (cells, ADMM sequences, run
 options), :mod:`bench.rows` (one cell's solve and row), :mod:`bench.executors` (local pool,
-Dask), :mod:`bench.machine` (``run_info.json``) and :mod:`bench.store` (files). This module is
-the loop that ties them together.
+Dask), :mod:`bench.lock` (one run per results directory, SIGTERM), :mod:`bench.machine`
+(``run_info.json``) and :mod:`bench.store` (files). This module is the loop that ties them
+together.
 
 Each finished cell is written at once (``store.write_cell``: temporary file + rename), so an
 interrupt or crash loses nothing finished; a rerun skips finished cells unless ``rerun=True``
-and reruns the cells of instances whose content changed. ``results.parquet``/``.csv`` are
-consolidated at the end (also after an interrupt).
+and reruns the cells of instances whose content changed (their stale cells are deleted and
+``results.parquet``/``.csv`` rewritten before any work). The tables are consolidated again at
+the end, also after Ctrl-C or SIGTERM.
+
+Only a solve's own outcome becomes a row (a timeout, a crash of the solving child, an error,
+garbage output: :mod:`bench.rows`). A cell whose worker, pool or scheduler failed outside the
+solve is not stored: the executor retries it once, and if it still fails it is counted in
+:attr:`RunSummary.missing` with its reason, for the next run to complete.
 """
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from c3bench.bench import store
-from c3bench.bench.executors import DaskPool, Executor, LocalPool, Task
+from c3bench.bench.executors import DaskPool, Executor, LocalPool, Task, note_reason
+from c3bench.bench.lock import exclusive_run, stopped_message
 from c3bench.bench.machine import machine_info, utc_now
 from c3bench.bench.planning import (
     DEFAULT_PRECISIONS,
@@ -40,17 +48,24 @@ from c3bench.bench.reference import (
     reusable,
     save_references,
 )
-from c3bench.bench.rows import CellOutcome, failure_row, reference_task, run_cell
+from c3bench.bench.rows import CellOutcome, reference_task, run_cell
 from c3bench.problems.capture import SUITES
 from c3bench.problems.errors import InputError
-from c3bench.problems.instance import Problem, list_instances, load_problem
+from c3bench.problems.instance import InstanceSet, Problem, read_instances
 from c3bench.problems.names import Start
 from c3bench.solvers import registry
 
 
 @dataclass
 class RunSummary:
-    """What a run did."""
+    """What a run did.
+
+    ``missing`` counts the cells planned for this run that were not stored because the
+    infrastructure failed (a worker died outside the solve, the scheduler went away, a
+    reference could not be computed for such a reason); ``missing_reasons`` gives their first
+    distinct reasons (at most
+    :data:`bench.executors.MAX_REASONS`). The next run completes them.
+    """
 
     suite: str
     root: Path
@@ -63,16 +78,36 @@ class RunSummary:
     warm_without_reference: int
     references_computed: int
     stale_removed: int = 0
+    missing: int = 0
+    missing_reasons: list[str] = field(default_factory=list)
+
+
+@dataclass
+class _Tally:
+    """Counts of a run so far (kept when it is interrupted)."""
+
+    ran: int = 0
+    failed: int = 0
+    missing: int = 0
+    reasons: list[str] = field(default_factory=list)
+    references: int = 0
+    warm_missing: int = 0
+
+    def miss(self, reason: str) -> None:
+        """One more cell not stored, for ``reason``."""
+        self.missing += 1
+        note_reason(self.reasons, reason)
 
 
 def ensure_instances(spec: Any, paths: store.SuitePaths, capture: Any = None,
-                     progress: bool = True) -> list[Path]:
-    """Generate the suite's instances under ``paths.instances`` unless already there."""
+                     progress: bool = True, skip_bad: bool = False) -> InstanceSet:
+    """Generate the suite's instances under ``paths.instances`` unless already there, then
+    read them (a bad file stops the run, or with ``skip_bad`` is listed and left out)."""
     if not (paths.instances / "manifest.json").exists():
         from c3bench.problems.suites import generate_suite
 
         generate_suite(spec, paths.instances, capture=capture, progress=progress)
-    return list_instances(paths.instances)
+    return read_instances(paths.instances, skip_bad)
 
 
 def _suite_name(suite: Any) -> str:
@@ -110,35 +145,133 @@ def _write_run_info(paths: store.SuitePaths, plan: Plan, name: str, jobs: int,
 
 def _references(pool: Executor, paths: store.SuitePaths, names: set[str],
                 problems: dict[str, Problem], hashes: dict[str, str], options: RunOptions,
-                progress: bool) -> tuple[dict[str, Reference], int]:
-    """The references of ``names``: cached ones reused, the others computed and cached."""
+                progress: bool, tally: _Tally) -> tuple[dict[str, Reference], dict[str, str]]:
+    """The references of ``names``: cached ones reused, the others computed and cached.
+
+    Returns the references and, for instances whose reference task failed for an
+    infrastructure reason, that reason (nothing is cached for them: the next run retries).
+    """
     references = load_references(paths.references)
     missing = sorted(n for n in names if not reusable(references.get(n), hashes[n],
                                                       plan_for(problems[n].family)))
+    lost: dict[str, str] = {}
     if not missing:
-        return references, 0
+        return references, lost
     shared = {n: pool.share(problems[n]) for n in missing}
     tasks: list[Task] = [
         (n, reference_task, (shared[n], hashes[n], plan_for(problems[n].family),
                              options.reference_time_limit, options.preload),
          options.reference_budget()) for n in missing]
     bar = _bar(progress, len(tasks), f"references {options.suite}", "instance")
-    computed = 0
     try:
         for outcome in pool.run(tasks):
-            if outcome.ok:
+            if outcome.ok and isinstance(outcome.value, Reference):
                 references[outcome.key] = outcome.value
+                tally.references += 1
             else:
-                ref = Reference(outcome.key, str(problems[outcome.key].family),
-                                hashes[outcome.key], "", "", "")
-                ref.reason, ref.failure = outcome.reason, str(outcome.failure)
-                references[outcome.key] = ref
-            computed += 1
+                lost[outcome.key] = outcome.reason or "the reference task returned no reference"
             bar.update(1)
     finally:
         bar.close()
-        save_references(paths.references, references)
-    return references, computed
+        if tally.references:
+            save_references(paths.references, references)
+    return references, lost
+
+
+def _load(suite: Any, paths: store.SuitePaths, families: Sequence[str] | None, capture: Any,
+          progress: bool, skip_bad: bool = False) -> tuple[dict[str, Problem], dict[str, str]]:
+    """The suite's problems of ``families`` by name, and every instance's content hash."""
+    problems: dict[str, Problem] = {}
+    hashes: dict[str, str] = {}
+    instances = ensure_instances(suite, paths, capture, progress, skip_bad)
+    for problem, path in zip(instances.problems, instances.paths, strict=True):
+        hashes[problem.name] = instance_hash(path)
+        if families is None or problem.family in families:
+            problems[problem.name] = problem
+    return problems, hashes
+
+
+def _sweep_stored(paths: store.SuitePaths, hashes: dict[str, str],
+                  rerun: bool) -> tuple[set[tuple[str, ...]], int]:
+    """Keys of the stored cells to skip, after removing stale ones (and consolidating).
+
+    A cell is stale when its instance changed or left the suite. ``results.parquet`` is
+    rewritten right away, so that no later interruption (even ``kill -9``) can leave a
+    consolidated table holding rows of deleted cells.
+    """
+    done: set[tuple[str, ...]] = set()
+    kept: list[dict[str, Any]] = []
+    stale = 0
+    for row in store.read_cells(paths):
+        if hashes.get(row["instance"]) != row["instance_hash"]:
+            store.remove_cell(paths, row)
+            stale += 1
+            continue
+        kept.append(row)
+        if not rerun:
+            done.add(store.cell_key(row))
+    if paths.cells.is_dir():
+        store.write_frame(paths, store.rows_to_frame(kept))
+    return done, stale
+
+
+def _runnable(todo: list[Cell], references: dict[str, Reference], lost: dict[str, str],
+              previous: dict[str, str], tally: _Tally) -> list[Cell]:
+    """The cells that can run now: their reference (and a warm cell's predecessor's) is
+    there or failed as a solve, never lost to an infrastructure fault."""
+    runnable: list[Cell] = []
+    for cell in todo:
+        before = previous.get(cell.instance) if cell.start == Start.WARM else None
+        reason = lost.get(cell.instance) or (lost.get(before) if before else None)
+        if reason:
+            tally.miss(f"reference not computed: {reason}")
+            continue
+        if before is not None:
+            reference = references.get(before)
+            if reference is None or reference.warm_start() is None:
+                tally.warm_missing += 1
+                continue
+        runnable.append(cell)
+    return runnable
+
+
+def _cell_tasks(pool: Executor, cells: list[Cell], problems: dict[str, Problem],
+                hashes: dict[str, str], references: dict[str, Reference],
+                previous: dict[str, str], plan: Plan, options: RunOptions) -> list[Task]:
+    """One :func:`run_cell` task per cell (problems shared once each)."""
+    shared = {n: pool.share(problems[n]) for n in {c.instance for c in cells}}
+    tasks: list[Task] = []
+    for cell in cells:
+        ref = references.get(cell.instance)
+        warm = references[previous[cell.instance]].warm_start() \
+            if cell.start == Start.WARM else None
+        tasks.append((cell.key, run_cell,
+                      (cell, shared[cell.instance], options, plan.solvers[cell.solver],
+                       ref.value() if ref is not None else None, warm,
+                       hashes[cell.instance]), options.cell_budget()))
+    return tasks
+
+
+def _run_cells(pool: Executor, paths: store.SuitePaths, tasks: list[Task], name: str,
+               progress: bool, on_cell: Callable[[CellOutcome], None] | None,
+               tally: _Tally) -> None:
+    """Run the cell tasks, storing each row as it arrives; infrastructure faults store
+    nothing (they are counted as missing)."""
+    bar = _bar(progress, len(tasks), f"cells {name}", "cell")
+    try:
+        for outcome in pool.run(tasks):
+            bar.update(1)
+            if not outcome.ok or not isinstance(outcome.value, CellOutcome):
+                tally.miss(outcome.reason or "the cell task returned no row")
+                continue
+            result: CellOutcome = outcome.value
+            store.write_cell(paths, result.row, result.trace)
+            tally.ran += 1
+            tally.failed += not result.row["success"]
+            if on_cell is not None:
+                on_cell(result)
+    finally:
+        bar.close()
 
 
 def run_suite(
@@ -160,6 +293,7 @@ def run_suite(
     max_cells: int | None = None,
     on_cell: Callable[[CellOutcome], None] | None = None,
     preload: Sequence[str] = (),
+    skip_bad: bool = False,
 ) -> RunSummary:
     """Run a suite into ``results_dir/<suite>/`` (see the module docstring).
 
@@ -190,11 +324,21 @@ def run_suite(
     preload
         Plugins (``module`` or ``module:function``) loaded here and in each worker, to
         register extra backends.
+    skip_bad
+        Leave out bad instance files (the CLI lists them first) instead of stopping.
 
     Returns
     -------
     RunSummary
-        Counts of what was planned, found stored, run and failed.
+        Counts of what was planned, found stored, run, failed and left missing.
+
+    Raises
+    ------
+    ResultsLocked
+        Another process works in ``results_dir/<suite>/``.
+    KeyboardInterrupt
+        Ctrl-C, or :class:`~c3bench.problems.errors.Terminated` on SIGTERM: the workers are
+        stopped and the finished cells consolidated first.
     """
     name = _suite_name(suite)
     paths = store.SuitePaths.of(results_dir, name)
@@ -202,96 +346,45 @@ def run_suite(
             and not (paths.instances / "manifest.json").exists():
         raise InputError(f"unknown suite {suite!r}: no instances under {paths.instances} and "
                          f"not one of {', '.join(SUITES)}")
-    paths.root.mkdir(parents=True, exist_ok=True)
-    registry.import_plugins(preload)
-    problems: dict[str, Problem] = {}
-    hashes: dict[str, str] = {}
-    for path in ensure_instances(suite, paths, capture, progress):
-        problem = load_problem(path)
-        hashes[problem.name] = instance_hash(path)
-        if families is None or problem.family in families:
-            problems[problem.name] = problem
-    previous = predecessors(list(problems.values()))
-    plan = plan_cells(list(problems.values()), solvers, settings, precisions, starts,
-                      previous)
-    options = RunOptions(repeats=repeats, time_limit=time_limit,
-                         reference_time_limit=reference_time_limit,
-                         preload=tuple(preload), suite=name)
-    _write_run_info(paths, plan, name, jobs, scheduler, options, settings, precisions, starts)
-
-    done: set[tuple[str, ...]] = set()
-    stale = 0
-    for row in store.read_cells(paths):
-        if hashes.get(row["instance"]) != row["instance_hash"]:
-            store.remove_cell(paths, row)  # its instance changed or left the suite
-            stale += 1
-        elif not rerun:
-            done.add(store.cell_key(row))
-    todo = [cell for cell in plan.cells if cell.key not in done]
-    already = len(plan.cells) - len(todo)
-    if max_cells is not None:
-        todo = todo[:max_cells]
-
-    with open(paths.solver_log, "a") as log:
-        log.write(f"=== run started {utc_now()} ===\n")
-    pool: Executor = DaskPool(scheduler) if scheduler else LocalPool(jobs, paths.solver_log)
-    interrupted = False
-    ran = failed = refs_computed = warm_missing = 0
-    try:
-        # references: for the instances of the cells to run and their predecessors
-        needed = {c.instance for c in todo}
-        needed |= {previous[c.instance] for c in todo if c.start == Start.WARM}
-        references, refs_computed = _references(pool, paths, needed, problems, hashes,
-                                                options, progress)
-        # warm cells need the predecessor's reference solution
-        runnable: list[Cell] = []
-        for cell in todo:
-            if cell.start == Start.WARM:
-                before = references.get(previous[cell.instance])
-                if before is None or before.warm_start() is None:
-                    warm_missing += 1
-                    continue
-            runnable.append(cell)
-        shared = {n: pool.share(problems[n]) for n in {c.instance for c in runnable}}
-        by_key = {cell.key: cell for cell in runnable}
-        tasks: list[Task] = []
-        for cell in runnable:
-            ref = references.get(cell.instance)
-            warm = references[previous[cell.instance]].warm_start() \
-                if cell.start == Start.WARM else None
-            tasks.append((cell.key, run_cell,
-                          (cell, shared[cell.instance], options, plan.solvers[cell.solver],
-                           ref.value() if ref is not None else None, warm,
-                           hashes[cell.instance]), options.cell_budget()))
-        bar = _bar(progress, len(tasks), f"cells {name}", "cell")
+    with exclusive_run(paths.root):
+        # connect first: an unreachable scheduler fails before anything is written
+        pool: Executor = DaskPool(scheduler) if scheduler else LocalPool(jobs,
+                                                                         paths.solver_log)
+        tally = _Tally()
         try:
-            for outcome in pool.run(tasks):
-                cell = by_key[outcome.key]
-                if outcome.ok:
-                    result: CellOutcome = outcome.value
-                else:
-                    ref = references.get(cell.instance)
-                    result = CellOutcome(failure_row(
-                        cell, problems[cell.instance], options, plan.solvers[cell.solver],
-                        ref.value() if ref is not None else None, outcome.failure,
-                        outcome.reason, hashes[cell.instance]))
-                store.write_cell(paths, result.row, result.trace)
-                ran += 1
-                failed += not result.row["success"]
-                bar.update(1)
-                if on_cell is not None:
-                    on_cell(result)
-        finally:
-            bar.close()
-    except KeyboardInterrupt:
-        interrupted = True
-        raise
-    finally:
-        pool.close()
-        if paths.cells.is_dir():
-            store.consolidate(paths)
-        if interrupted:
-            print(f"\ninterrupted: {ran} cells stored in {paths.cells}; rerun to resume",
+            registry.import_plugins(preload)
+            problems, hashes = _load(suite, paths, families, capture, progress, skip_bad)
+            previous = predecessors(list(problems.values()))
+            plan = plan_cells(list(problems.values()), solvers, settings, precisions, starts,
+                              previous)
+            options = RunOptions(repeats=repeats, time_limit=time_limit,
+                                 reference_time_limit=reference_time_limit,
+                                 preload=tuple(preload), suite=name)
+            _write_run_info(paths, plan, name, jobs, scheduler, options, settings, precisions,
+                            starts)
+            done, stale = _sweep_stored(paths, hashes, rerun)
+            todo = [cell for cell in plan.cells if cell.key not in done]
+            already = len(plan.cells) - len(todo)
+            todo = todo if max_cells is None else todo[:max_cells]
+            with open(paths.solver_log, "a") as log:
+                log.write(f"=== run started {utc_now()} ===\n")
+            # references: for the instances of the cells to run and their predecessors
+            needed = {c.instance for c in todo}
+            needed |= {previous[c.instance] for c in todo if c.start == Start.WARM}
+            references, lost = _references(pool, paths, needed, problems, hashes, options,
+                                           progress, tally)
+            runnable = _runnable(todo, references, lost, previous, tally)
+            tasks = _cell_tasks(pool, runnable, problems, hashes, references, previous, plan,
+                                options)
+            _run_cells(pool, paths, tasks, name, progress, on_cell, tally)
+        except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
+            print("\n" + stopped_message(stop, f"{tally.ran} cells", paths.cells),
                   file=sys.stderr)
-    return RunSummary(name, paths.root, len(plan.cells), already, ran, failed, interrupted,
-                      plan.skipped_solvers, warm_missing, refs_computed, stale)
+            raise
+        finally:
+            pool.close()
+            if paths.cells.is_dir():
+                store.consolidate(paths)
+    return RunSummary(name, paths.root, len(plan.cells), already, tally.ran, tally.failed,
+                      False, plan.skipped_solvers, tally.warm_missing, tally.references,
+                      stale, tally.missing, tally.reasons)

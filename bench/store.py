@@ -16,12 +16,16 @@ Layout of ``ROOT/<suite>/``::
     run_info.json             machine, versions and options of the last run
     solver_output.log         what the solvers printed (local pool workers)
     instances/                the suite's instances (``problems.suites.generate_suite``)
+    c3bench.lock              held (``flock``) while a run works here; names the holder
+                              (:mod:`bench.lock`)
 
 A cell is one (instance, solver, settings profile, precision, start) combination; its
 identity is :data:`KEY_COLUMNS`.
 
-``ROOT/perf/perf.parquet`` and ``perf.csv`` hold the control-step times of ``c3bench perf``
-(:data:`PERF_SCHEMA`, one row per timed step) and ``figures/perf_time_vs_samples.png``.
+``ROOT/perf/runs/<run_id>.parquet`` holds the control-step times of one ``c3bench perf`` run
+(:data:`PERF_SCHEMA`, one row per timed step; a run never overwrites another),
+``ROOT/perf/perf.parquet`` and ``perf.csv`` every run together, and
+``figures/perf_time_vs_samples.png`` the latest run of each machine.
 
 Schema versions: one :data:`SCHEMA_VERSION` for every table this module writes (results,
 traces, references, perf), stored in Parquet metadata (:data:`PARQUET_METADATA_KEY`) and in a
@@ -32,6 +36,7 @@ Changing any stored table's columns bumps :data:`SCHEMA_VERSION`.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import re
@@ -420,18 +425,25 @@ def write_frame(paths: SuitePaths, frame: pd.DataFrame) -> None:
 def read_results(source: str | Path) -> pd.DataFrame:
     """Read a results table (``results.parquet`` / ``results.csv`` or a suite directory).
 
-    A suite directory with cell files but no consolidated table is consolidated first.
-    Raises :class:`SchemaVersionError` for another schema version and ``FileNotFoundError``
-    when there are no results.
+    For a suite directory the cell files are the truth: when it has a ``cells/`` folder the
+    table is gathered from it and ``results.parquet``/``.csv`` rewritten to match (kept as
+    they are when the directory is read-only), so the table never disagrees with the cells
+    (a run killed before its last consolidation, cells removed as stale). Raises
+    :class:`SchemaVersionError` for another schema version and ``FileNotFoundError`` when
+    there are no results.
     """
     source = Path(source)
     if not source.exists():
         raise FileNotFoundError(f"{source}: no results (run the benchmark first)")
     if source.is_dir():
         paths = SuitePaths(source)
+        if paths.cells.is_dir() and (any(paths.cells.glob("*.json"))
+                                     or paths.parquet.exists()):
+            frame = rows_to_frame(read_cells(paths))
+            with contextlib.suppress(OSError):
+                write_frame(paths, frame)
+            return frame
         if not paths.parquet.exists():
-            if paths.cells.is_dir() and any(paths.cells.glob("*.json")):
-                return consolidate(paths)
             raise FileNotFoundError(f"{source}: no results (run the benchmark first)")
         source = paths.parquet
     if source.suffix == ".csv":
@@ -496,14 +508,66 @@ PERF_SCHEMA: tuple[Column, ...] = (
 PERF_COLUMNS: tuple[str, ...] = tuple(column.name for column in PERF_SCHEMA)
 
 
+PERF_RUNS = "runs"
+"""Folder of one Parquet file per ``c3bench perf`` run under :func:`perf_dir`."""
+
+
 def perf_files(results_dir: str | Path) -> tuple[Path, Path]:
-    """``perf.parquet`` and ``perf.csv`` under :func:`perf_dir`."""
+    """The consolidated ``perf.parquet`` and ``perf.csv`` (every run) under :func:`perf_dir`."""
     directory = perf_dir(results_dir)
     return directory / "perf.parquet", directory / "perf.csv"
 
 
+def perf_run_files(results_dir: str | Path) -> list[Path]:
+    """The file of each stored run, ``perf/runs/<run_id>.parquet``, oldest first."""
+    return sorted((perf_dir(results_dir) / PERF_RUNS).glob("*.parquet"))
+
+
 def write_perf(frame: pd.DataFrame, results_dir: str | Path) -> tuple[Path, Path]:
-    """Write ``<results_dir>/perf/perf.parquet`` and ``perf.csv`` atomically."""
+    """Store the rows of one or more runs, keeping every earlier run; return the
+    consolidated ``perf.parquet`` and ``perf.csv``.
+
+    Each run (``run_id``) goes to its own ``perf/runs/<run_id>.parquet`` (a new id when that
+    file exists: a run never overwrites another), then ``perf.parquet`` and ``perf.csv`` are
+    rewritten atomically with every stored run. The first write beside a table of the
+    layout before per-run files turns its runs into run files, so they are kept too.
+    """
+    runs = perf_dir(results_dir) / PERF_RUNS
+    if not runs.is_dir():
+        _adopt_perf_table(results_dir)
+    for run_id, rows in frame.groupby("run_id", sort=False):
+        stem, suffix = _file_safe(str(run_id)), 1
+        while (runs / f"{stem}.parquet").exists():
+            suffix += 1
+            stem = f"{_file_safe(str(run_id))}.{suffix}"
+        if suffix > 1:
+            rows = rows.assign(run_id=stem)
+        atomic_write_bytes(runs / f"{stem}.parquet", parquet_bytes(rows))
+    return consolidate_perf(results_dir)
+
+
+def _file_safe(text: str) -> str:
+    """``text`` with every character but letters, digits, ``.``, ``_`` and ``-`` as ``_``."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", text) or "run"
+
+
+def _adopt_perf_table(results_dir: str | Path) -> None:
+    """Write one run file per run of an existing consolidated table (when there is one)."""
+    parquet, csv = perf_files(results_dir)
+    if not (parquet.exists() or csv.exists()):
+        return
+    old = read_perf(results_dir)
+    runs = perf_dir(results_dir) / PERF_RUNS
+    for run_id, rows in old.groupby("run_id", sort=False):
+        atomic_write_bytes(runs / f"{_file_safe(str(run_id))}.parquet",
+                           parquet_bytes(rows.reset_index(drop=True)))
+
+
+def consolidate_perf(results_dir: str | Path) -> tuple[Path, Path]:
+    """Rewrite ``perf.parquet`` and ``perf.csv`` with every run file, oldest run first."""
+    frames = [read_parquet(path).to_pandas() for path in perf_run_files(results_dir)]
+    frame = pd.concat(frames, ignore_index=True) if frames else \
+        pd.DataFrame(columns=list(PERF_COLUMNS))
     parquet, csv = perf_files(results_dir)
     atomic_write_bytes(parquet, parquet_bytes(frame))
     atomic_write_bytes(csv, frame.to_csv(index=False).encode())
@@ -511,7 +575,8 @@ def write_perf(frame: pd.DataFrame, results_dir: str | Path) -> tuple[Path, Path
 
 
 def read_perf(results_dir: str | Path) -> pd.DataFrame:
-    """Read ``<results_dir>/perf/perf.parquet`` (or the CSV); reject another schema version.
+    """Read ``<results_dir>/perf/perf.parquet`` (or the CSV), every stored run; reject
+    another schema version.
 
     Raises ``FileNotFoundError`` when there is no measurement.
     """
@@ -524,3 +589,12 @@ def read_perf(results_dir: str | Path) -> pd.DataFrame:
     else:
         raise FileNotFoundError(f"no perf results under {parquet.parent}; run `c3bench perf`")
     return frame
+
+
+def latest_perf_runs(frame: pd.DataFrame) -> pd.DataFrame:
+    """The rows of the latest run (largest ``run_id``) of each machine (``host``)."""
+    if frame.empty:
+        return frame
+    ids = frame["run_id"].astype(str)
+    latest = ids.groupby(frame["host"].astype(str)).transform("max")
+    return frame[ids == latest].reset_index(drop=True)

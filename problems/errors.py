@@ -35,3 +35,16 @@ class RenderUnavailable(C3BenchError, RuntimeError):
 
 class NotPositiveDefiniteError(C3BenchError, ValueError):
     """A matrix that must be positive definite (a Cholesky factor's input) is not."""
+
+
+class ResultsLocked(C3BenchError, RuntimeError):
+    """Another c3bench process is working in the same results directory (its lock file names
+    it)."""
+
+
+class Terminated(KeyboardInterrupt):
+    """The process received SIGTERM: stop like Ctrl-C (finished work is kept), exit code 143.
+
+    A ``KeyboardInterrupt`` so that every interrupt path handles it and ``except Exception``
+    cannot swallow it.
+    """
