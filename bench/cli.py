@@ -12,26 +12,32 @@ Conventions, the same in every command:
   ``--x a,b`` and ``--x a --x b`` are equal (:class:`bench.cli_options.ListAction`);
 * ``--results ROOT`` is the results root; each command reads and writes its own folder under
   it (:mod:`bench.store`), default ``results``;
-* exit codes: 0 success, 1 error (nothing to read, a failed command), 2 bad input (one line
-  ``error: ...``, never a traceback), 130 interrupted.
+* exit codes: 0 success, 1 error (nothing to read, a failed command, cells left missing, an
+  expected fault such as a full disk: one line ``error: ...``), 2 bad input (one line
+  ``error: ...``, never a traceback), 130 interrupted, 143 terminated (SIGTERM);
+* every argument is checked before any work (:mod:`bench.cli_checks`); ``--debug`` (anywhere
+  on the line) shows the traceback of an error instead of the one line; an unexpected
+  exception (a bug) prints ``internal error`` and its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
-from c3bench.bench import store
+from c3bench.bench import cli_checks, store
 from c3bench.bench.cli_closed_loop import cmd_closed_loop, cmd_closed_loop_suite, cmd_sweep
 from c3bench.bench.cli_options import (
     EXIT_ERROR,
     EXIT_INTERRUPTED,
     EXIT_OK,
+    EXIT_TERMINATED,
     EXIT_USAGE,
     Parser,
     add_executor,
@@ -42,89 +48,27 @@ from c3bench.bench.cli_options import (
     positive_float,
     positive_int,
 )
+from c3bench.bench.cli_problems import add_problems, add_skip_bad, capture_for, read_instance_dir
 from c3bench.bench.planning import DEFAULT_PRECISIONS, DEFAULT_SETTINGS, STARTS
-from c3bench.problems.capture import SUITES, Capture
-from c3bench.problems.errors import C3BenchError, InputError
-from c3bench.problems.names import Family, Precision, Profile, Start, Variant
-
-CAPTURE_QP_BACKEND = "clarabel"
-"""QP solver of the controller runs whose iterates become suite instances (exact and
-deterministic; the reference study's equilibrated method with its ridge is not exact)."""
+from c3bench.problems.capture import SUITES
+from c3bench.problems.errors import C3BenchError, InputError, Terminated
+from c3bench.problems.names import Family, Precision, Profile, Start
 
 
 def load_plugins(entries: Sequence[str]) -> None:
-    """Load ``MODULE`` / ``MODULE:FUNCTION`` plugins; a missing one is an :class:`InputError`."""
+    """Load ``MODULE`` / ``MODULE:FUNCTION`` plugins; one that is missing or fails to load
+    (whatever it raises) is an :class:`InputError`."""
     from c3bench.solvers import registry
 
     for entry in entries:
         try:
             registry.import_plugins([entry])
-        except (ImportError, AttributeError) as error:
-            raise InputError(f"cannot load plugin {entry!r}: {error}") from error
+        except Exception as error:  # a plugin's import may raise anything
+            raise InputError(f"cannot load plugin {entry!r} (--plugin): "
+                             f"{type(error).__name__}: {error}") from error
 
 
-# --- problems, solvers --------------------------------------------------------------------------
-def capture_for(name: str) -> Capture | None:
-    """The ADMM-iterate source behind the QP and projection families.
-
-    ``controller`` (default): real C3+ runs (the reference study's schedule, 10 iterations) at each
-    sampled state; ``provisional``: the documented deterministic stand-in (``None``).
-    """
-    if name == "provisional":
-        return None
-    from c3bench.solvers.c3 import C3Options, controller_capture
-
-    return controller_capture(C3Options(variant=Variant.C3PLUS, qp_backend=CAPTURE_QP_BACKEND))
-
-
-def instance_table(directory: Path) -> pd.DataFrame:
-    """Per family: count, variables, equality and inequality rows, bounded variables, pairs.
-
-    Sizes that vary within a family are shown as ``min-max``.
-    """
-    from c3bench.problems.instance import load_instances
-
-    columns = ["variables", "equality_rows", "inequality_rows", "bounded_variables",
-               "complementarity_pairs"]
-    rows = [p.summary() for p in load_instances(directory)]
-    if not rows:
-        return pd.DataFrame(columns=["family", "count", *columns])
-
-    def span(values: pd.Series) -> str:
-        low, high = int(values.min()), int(values.max())
-        return str(low) if low == high else f"{low}-{high}"
-
-    table = pd.DataFrame(rows).groupby("family", sort=True).agg(
-        count=("name", "size"), **{c: (c, span) for c in columns})
-    return table.reset_index()
-
-
-def cmd_problems_generate(args: argparse.Namespace) -> int:
-    """Write a suite's instances and print their table."""
-    from c3bench.problems.config import load_config
-    from c3bench.problems.suites import generate_suite
-
-    config = load_config(args.config)
-    paths = generate_suite(args.suite, args.out, config=config,
-                           capture=capture_for(args.capture), progress=not args.quiet)
-    print(f"wrote {len(paths)} instances to {args.out}")
-    print(instance_table(Path(args.out)).to_string(index=False))
-    return EXIT_OK
-
-
-def cmd_problems_list(args: argparse.Namespace) -> int:
-    """Print the table of the instances below a directory."""
-    directory = Path(args.directory)
-    if not directory.is_dir():
-        raise InputError(f"{directory} is not a directory")
-    table = instance_table(directory)
-    if table.empty:
-        print(f"no instances under {directory}")
-        return EXIT_ERROR
-    print(table.to_string(index=False))
-    return EXIT_OK
-
-
+# --- solvers ------------------------------------------------------------------------------------
 def cmd_solvers(args: argparse.Namespace) -> int:
     """Print every registered backend: availability, version, families, precisions."""
     from c3bench.solvers import registry
@@ -146,24 +90,39 @@ def cmd_solvers(args: argparse.Namespace) -> int:
 
 
 # --- run, report, compare, perf ---------------------------------------------------------------
+def check_run(args: argparse.Namespace) -> None:
+    """Every argument of ``run``, before any work: the results root, the suite, the plugins,
+    the solvers, a selection that plans cells, and the stored instance files."""
+    from c3bench.solvers import registry
+
+    cli_checks.check_output_path("--results", args.results)
+    cli_checks.check_suite_to_run(args.suite, args.results)
+    load_plugins(args.plugin)
+    available = cli_checks.check_solvers(args.solvers, registry.available())
+    cli_checks.check_selection(available, args.families, args.precision,
+                               cli_checks.suite_families(args.suite, args.results))
+    instances = store.SuitePaths.of(args.results, args.suite).instances
+    if instances.is_dir():
+        read_instance_dir(instances, args.skip_bad)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Run a suite (generating its instances first when missing), then write the report."""
     from c3bench.bench.report import write_report
     from c3bench.bench.runner import run_suite
 
-    load_plugins(args.plugin)
-    try:
-        summary = run_suite(
-            args.suite, results_dir=args.results, solvers=args.solvers,
-            settings=args.settings, precisions=args.precision, starts=args.start,
-            families=args.families, jobs=args.jobs, scheduler=args.scheduler,
-            rerun=args.rerun, repeats=args.repeats, time_limit=args.time_limit,
-            reference_time_limit=args.reference_time_limit,
-            capture=capture_for("controller"), progress=not args.quiet,
-            max_cells=args.max_cells, preload=tuple(args.plugin))
-    except KeyboardInterrupt:
-        print("interrupted; finished cells are stored, run again to resume", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    check_run(args)
+    summary = run_suite(
+        args.suite, results_dir=args.results, solvers=args.solvers,
+        settings=args.settings, precisions=args.precision, starts=args.start,
+        families=args.families, jobs=args.jobs, scheduler=args.scheduler,
+        rerun=args.rerun, repeats=args.repeats, time_limit=args.time_limit,
+        reference_time_limit=args.reference_time_limit,
+        capture=capture_for("controller"), progress=not args.quiet,
+        max_cells=args.max_cells, preload=tuple(args.plugin), skip_bad=args.skip_bad)
+    if summary.planned == 0:
+        raise InputError("nothing to run: no solver accepts any instance of the selection "
+                         "(--solvers, --families, --precision)")
     for name, reason in sorted(summary.skipped_solvers.items()):
         print(f"skipped {name}: {reason}", file=sys.stderr)
     print(f"{summary.suite}: {summary.planned} cells planned, {summary.already_done} already "
@@ -174,8 +133,13 @@ def cmd_run(args: argparse.Namespace) -> int:
           + (f", {summary.stale_removed} stale cells of changed instances removed"
              if summary.stale_removed else ""))
     print(f"solver output: {store.SuitePaths(summary.root).solver_log}")
-    if not args.no_report:
+    if not args.no_report and (summary.ran or summary.already_done or not summary.missing):
         print(f"report: {write_report(summary.suite, args.results)}")
+    if summary.missing:
+        reasons = "; ".join(summary.missing_reasons) or "infrastructure faults"
+        print(f"{summary.missing} cells missing ({reasons}); run again to complete them",
+              file=sys.stderr)
+        return EXIT_ERROR
     return EXIT_OK
 
 
@@ -183,7 +147,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     """Write ``ROOT/<suite>/report.md`` and its figures."""
     from c3bench.bench.report import write_report
 
-    print(f"report: {write_report(args.suite, args.results, figures=not args.no_figures)}")
+    cli_checks.check_output_path("--results", args.results)
+    cli_checks.check_stored_suite(args.suite, args.results)
+    path = write_report(args.suite, args.results, figures=not args.no_figures,
+                        budget_ms=args.budget_ms)
+    print(f"report: {path}")
     return EXIT_OK
 
 
@@ -191,6 +159,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     """Print who wins between two solvers, per family and settings."""
     from c3bench.bench.compare import compare
 
+    cli_checks.check_stored_suite(args.suite, args.results)
     print(compare(args.suite, args.a, args.b, args.results), end="")
     return EXIT_OK
 
@@ -199,46 +168,24 @@ def cmd_perf(args: argparse.Namespace) -> int:
     """Time one C3+ control step per backend and number of samples."""
     from c3bench.bench.perf import PERF_FIGURE, PerfSettings, run_perf
 
+    cli_checks.check_output_path("--results", args.results)
+    cli_checks.check_cpu(args.cpu)
     settings = PerfSettings(samples=tuple(args.samples), backends=tuple(args.backend),
                             precisions=tuple(args.precision), device=args.device,
                             repeats=args.repeats, warmup=args.warmup,
                             iterations=args.iterations, reference_budget=args.reference_budget,
                             seed=args.seed, results_dir=Path(args.results), cpu=args.cpu)
-    run_perf(settings)
-    written = [*store.perf_files(settings.results_dir),
+    frame = run_perf(settings)
+    runs = {str(run) for run in frame["run_id"]}
+    written = [*(path for path in store.perf_run_files(settings.results_dir)
+                 if path.stem in runs),
+               *store.perf_files(settings.results_dir),
                store.perf_dir(settings.results_dir) / "figures" / PERF_FIGURE]
     print("# wrote " + ", ".join(str(path) for path in written if path.exists()))
     return EXIT_OK
 
 
 # --- the parser ---------------------------------------------------------------------------------
-def _add_problems(sub: Any) -> None:
-    """``problems generate`` and ``problems list``."""
-    problems = sub.add_parser("problems", help="generate and list subproblem instances",
-                              description="Generate a suite's instances, or list instances.")
-    problems_sub = problems.add_subparsers(dest="problems_command", required=True,
-                                           metavar="{generate,list}",
-                                           help="what to do with instances")
-    generate = problems_sub.add_parser("generate", help="write a suite's instances",
-                                       description="Write a suite's instances to a directory.")
-    generate.add_argument("--suite", choices=tuple(SUITES), default="quick",
-                          help="suite (default: quick)")
-    generate.add_argument("--out", required=True, metavar="DIR",
-                          help="instance directory to write (not a results root)")
-    generate.add_argument("--config", default=None, metavar="FILE",
-                          help="task constants (TOML; default: the packaged cube_tipping.toml)")
-    generate.add_argument("--capture", choices=("controller", "provisional"),
-                          default="controller",
-                          help="source of the ADMM iterates behind the QP and projection "
-                               "families (default: controller)")
-    add_quiet(generate)
-    generate.set_defaults(handler=cmd_problems_generate)
-    listing = problems_sub.add_parser("list", help="table of instances by family",
-                                      description="Per family: count, variables, rows, pairs.")
-    listing.add_argument("directory", metavar="DIR", help="directory holding instances")
-    listing.set_defaults(handler=cmd_problems_list)
-
-
 def _add_plugin(parser: argparse.ArgumentParser, loaded: str) -> None:
     """``--plugin MODULE[:FUNCTION]``."""
     add_list(parser, "--plugin", metavar="MODULE[:FUNCTION]", default=(),
@@ -277,9 +224,10 @@ def _add_benchmark(sub: Any) -> None:
                      help="seconds per solve (default: 10)")
     run.add_argument("--reference-time-limit", type=positive_float, default=60.0, metavar="S",
                      help="seconds per reference solve (default: 60)")
-    run.add_argument("--max-cells", type=nonnegative_int, default=None, metavar="N",
+    run.add_argument("--max-cells", type=positive_int, default=None, metavar="N",
                      help="stop after this many cells (the rest stay for a later run)")
     _add_plugin(run, "here and in every worker")
+    add_skip_bad(run)
     run.add_argument("--no-report", action="store_true", help="do not write the report")
     add_quiet(run)
     run.set_defaults(handler=cmd_run)
@@ -290,6 +238,9 @@ def _add_benchmark(sub: Any) -> None:
                         help="stored suite (default: quick)")
     add_results(report, "reads and writes ROOT/<suite>/")
     report.add_argument("--no-figures", action="store_true", help="tables only")
+    report.add_argument("--budget-ms", type=positive_float, default=None, metavar="MS",
+                        help="control budget of one QP solve for the budget table, in ms "
+                             "(default: control period / ADMM iterations = 50 ms / 10 = 5 ms)")
     report.set_defaults(handler=cmd_report)
 
     compare = sub.add_parser("compare", help="compare two solvers on a stored suite",
@@ -377,6 +328,11 @@ def _add_closed_loop(sub: Any) -> None:
                       help=f"cube side of the model (m; default: {spec.model_l:g})")
     loop.add_argument("--duration", type=positive_float, default=2.0, metavar="S",
                       help="seconds of simulation, a multiple of dt (default: 2)")
+    loop.add_argument("--qp-time-limit", type=positive_float, default=spec.qp_time_limit,
+                      metavar="S",
+                      help="seconds per QP (and C3 projection) solve, run in an isolated "
+                           "child; a solve that overruns is killed and the step falls back "
+                           f"(default: {spec.qp_time_limit:g})")
     loop.add_argument("--seed", type=nonnegative_int, default=spec.seed, metavar="N",
                       help=f"seed of the sampled model sides (default: {spec.seed})")
     loop.add_argument("--config", default=None, metavar="FILE",
@@ -427,9 +383,12 @@ def build_parser() -> argparse.ArgumentParser:
                                 "(C3 / C3+).")
     parser.add_argument("--version", action="version", version=f"c3bench {__version__}",
                         help="print the version and exit")
+    parser.add_argument("--debug", action="store_true",
+                        help="on an error, show the full traceback instead of the one-line "
+                             "message (also accepted after the command)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 help="the command; `c3bench COMMAND --help` for its options")
-    _add_problems(sub)
+    add_problems(sub)
     _add_benchmark(sub)
     _add_closed_loop(sub)
     _add_perf(sub)
@@ -437,22 +396,48 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Parse ``argv`` (default: the process's arguments), run the command, return its code."""
+    """Parse ``argv`` (default: the process's arguments), run the command, return its code.
+
+    Expected faults print one line ``error: ...`` (with ``--debug``, the traceback as well):
+    bad input exits 2, other c3bench errors and ``OSError`` (disk full, read-only, a path
+    under a file) exit 1. Ctrl-C exits 130, SIGTERM (:class:`Terminated`) 143. Anything else
+    is a bug: ``internal error`` and its traceback, exit 1.
+    """
+    arguments = list(sys.argv[1:] if argv is None else argv)
+    if "--debug" in arguments:  # accepted anywhere on the line, parsed as the global flag
+        arguments = ["--debug", *(word for word in arguments if word != "--debug")]
     try:
-        args = build_parser().parse_args(argv)
+        args = build_parser().parse_args(arguments)
     except SystemExit as stop:  # --help, --version, usage errors
         return stop.code if isinstance(stop.code, int) else EXIT_ERROR
     try:
         return int(args.handler(args))
+    except Terminated:
+        print("terminated (SIGTERM); finished work is kept", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except ValueError as error:  # InputError and SchemaVersionError among them
-        print(f"error: {error}", file=sys.stderr)
-        return EXIT_USAGE
-    except (C3BenchError, OSError) as error:  # nothing to read, a failed command
-        print(f"error: {error}", file=sys.stderr)
+        return _fail(error, str(error), EXIT_USAGE, args.debug)
+    except OSError as error:  # disk full, read-only, a path under a file, nothing to read
+        return _fail(error, cli_checks.describe_os_error(error), EXIT_ERROR, args.debug)
+    except C3BenchError as error:  # a failed command, a locked results directory
+        return _fail(error, str(error), EXIT_ERROR, args.debug)
+    except Exception as error:  # noqa: BLE001 - a bug: say so, with the traceback
+        print(f"internal error: {type(error).__name__}: {error} (a bug in c3bench; please "
+              "report it with the traceback below)", file=sys.stderr)
+        traceback.print_exc()
         return EXIT_ERROR
+
+
+def _fail(error: BaseException, message: str, code: int, debug: bool) -> int:
+    """Print ``error: message`` (after the traceback with ``--debug``); return ``code``."""
+    if debug:
+        traceback.print_exception(error)
+    line = " ".join(part.strip() for part in message.splitlines() if part.strip())
+    print(f"error: {line or type(error).__name__}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

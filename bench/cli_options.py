@@ -15,8 +15,9 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
-EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
-"""Exit codes: success, error (nothing to read, a failed command), bad input, interrupted."""
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+"""Exit codes: success, error (nothing to read, a failed command, cells left missing, a full
+disk), bad input, interrupted (Ctrl-C), terminated (SIGTERM)."""
 
 
 class Parser(argparse.ArgumentParser):

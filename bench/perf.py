@@ -34,12 +34,14 @@ Warm-up steps (default 2; JAX compiles in them) are excluded; BLAS is pinned to 
 whole process to core ``N`` (XLA's CPU runtime may otherwise use a second core even with one
 intra-op thread: its CPU time then exceeds the wall time).
 
-**Files** (written atomically under ``<results>/perf/`` by :func:`bench.store.write_perf`):
-``perf.parquet`` and ``perf.csv``, one row per timed control step (plus one row per skipped
-configuration), columns :data:`bench.store.PERF_SCHEMA`; and
+**Files** (written atomically under ``<results>/perf/`` by :func:`bench.store.write_perf`;
+every run is kept): ``runs/<run_id>.parquet``, one row per timed control step of that run
+(plus one row per skipped configuration), columns :data:`bench.store.PERF_SCHEMA`;
+``perf.parquet`` and ``perf.csv``, every run together; and
 ``figures/perf_time_vs_samples.png`` (:func:`bench.plots.plot_perf`): median control-step time
-against the number of samples (log-log, p95 as error bars), with the reference study's 60 ms and
-the 6 ms target. :func:`bench.report.perf_report_section` renders the summary for the report.
+against the number of samples (log-log, p95 as error bars) of the latest run of each machine,
+with the reference study's 60 ms and the 6 ms target. :func:`bench.report.perf_report_section`
+renders the summary of the latest run of each machine for the report.
 """
 
 from __future__ import annotations
@@ -313,7 +315,8 @@ def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.
     store.write_perf(frame, settings.results_dir)
     from c3bench.bench.plots import plot_perf  # matplotlib only once there is something to draw
 
-    plot_perf(frame, store.perf_dir(settings.results_dir) / "figures" / PERF_FIGURE)
+    plot_perf(store.read_perf(settings.results_dir),
+              store.perf_dir(settings.results_dir) / "figures" / PERF_FIGURE)
     return frame
 
 

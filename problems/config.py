@@ -15,6 +15,8 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
+from c3bench.problems.errors import InputError
+
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("cube_tipping.toml")
 
 
@@ -96,13 +98,41 @@ class Config:
         return Config(scene=replace(self.scene, **changes), mpc=self.mpc)
 
 
-def _build(cls: type, table: dict[str, Any], source: Path) -> Any:
+TABLES: dict[str, type] = {"scene": SceneConfig, "mpc": MPCConfig}
+"""The tables of a configuration file and the dataclass each fills."""
+
+
+def _build(cls: type, name: str, table: Any, source: Path) -> Any:
+    """The dataclass ``cls`` from the TOML table ``[name]``; :class:`InputError` naming the
+    file, the table and the key at fault."""
+    if not isinstance(table, dict):
+        raise InputError(f"{source}: {name} must be a table ([{name}]), got a value")
     known = {f.name for f in fields(cls)}
     unknown = set(table) - known
     if unknown:
-        raise ValueError(f"{source}: unknown key(s) {sorted(unknown)} in [{cls.__name__}]")
+        raise InputError(f"{source}: unknown key(s) {sorted(unknown)} in [{name}]; known: "
+                         f"{', '.join(sorted(known))}")
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
-    return cls(**values)
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as error:
+        raise InputError(f"{source}: [{name}] {error}") from error
+
+
+def _read_toml(source: Path) -> dict[str, Any]:
+    """The tables of a TOML file; :class:`InputError` naming the file when it is missing,
+    unreadable or not TOML."""
+    try:
+        with source.open("rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError as error:
+        raise InputError(f"{source}: no such configuration file") from error
+    except IsADirectoryError as error:
+        raise InputError(f"{source}: a directory, not a configuration file") from error
+    except OSError as error:
+        raise InputError(f"{source}: cannot read ({error.strerror or error})") from error
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        raise InputError(f"{source}: not valid TOML ({error})") from error
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -112,11 +142,18 @@ def load_config(path: str | Path | None = None) -> Config:
     ----------
     path
         A TOML file with ``[scene]`` and ``[mpc]`` tables; ``None`` reads the packaged default.
-        Keys left out keep their defaults; an unknown key is an error naming it.
+        Keys left out keep their defaults. An unknown table or key, a missing or unreadable
+        file, or a value out of range is an :class:`InputError` naming the file and the
+        table or key.
     """
     source = Path(path) if path is not None else DEFAULT_CONFIG_PATH
-    with source.open("rb") as handle:
-        table = tomllib.load(handle)
-    scene = _build(SceneConfig, table.get("scene", {}), source)
-    mpc = _build(MPCConfig, table.get("mpc", {}), source)
+    table = _read_toml(source)
+    unknown = sorted(set(table) - set(TABLES))
+    if unknown:
+        what = ", ".join(f"[{t}]" if isinstance(table[t], dict) else f"{t} (outside a table)"
+                         for t in unknown)
+        raise InputError(f"{source}: unknown table(s) {what}; known: "
+                         f"{', '.join(f'[{t}]' for t in TABLES)}")
+    scene = _build(SceneConfig, "scene", table.get("scene", {}), source)
+    mpc = _build(MPCConfig, "mpc", table.get("mpc", {}), source)
     return Config(scene=scene, mpc=mpc)

@@ -225,9 +225,17 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
 
 def atomic_write_bytes(path: Path, payload: bytes) -> None:
-    """Write ``payload`` to ``path`` through a temporary file and a rename."""
+    """Write ``payload`` to ``path`` through a temporary file and a rename.
+
+    An ``OSError`` of the write (disk full, read-only file system, no permission) names
+    ``path`` rather than the temporary file; one creating the folder names that folder.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
+                                             suffix=".tmp")
+    except OSError as error:
+        raise _naming(error, path) from error
     try:
         with os.fdopen(handle, "wb") as stream:
             stream.write(payload)
@@ -235,9 +243,18 @@ def atomic_write_bytes(path: Path, payload: bytes) -> None:
             os.fsync(stream.fileno())
         os.chmod(temporary, 0o644)
         os.replace(temporary, path)
-    except BaseException:
+    except BaseException as error:
         Path(temporary).unlink(missing_ok=True)
+        if isinstance(error, OSError):
+            raise _naming(error, path) from error
         raise
+
+
+def _naming(error: OSError, path: Path) -> OSError:
+    """``error`` as the same ``OSError`` subclass, naming ``path`` as the file at fault."""
+    if error.errno is None or error.strerror is None:
+        return error
+    return type(error)(error.errno, error.strerror, str(path))
 
 
 def problem_arrays(problem: Problem) -> dict[str, np.ndarray]:
@@ -289,43 +306,87 @@ def _require(table: dict[str, Any], key: str, source: Path) -> Any:
     return table[key]
 
 
+def _read_header(json_path: Path, npz_path: Path) -> dict[str, Any]:
+    """The JSON header of an instance; :class:`InstanceFormatError` naming the file when it
+    is missing, empty or not a JSON object."""
+    try:
+        text = json_path.read_text()
+    except FileNotFoundError as error:
+        if npz_path.exists():
+            raise InstanceFormatError(f"{npz_path}: no {json_path.name} beside it (an array "
+                                      "file without its instance header)") from error
+        raise InstanceFormatError(f"{json_path}: no such instance file") from error
+    except (OSError, UnicodeDecodeError) as error:
+        raise InstanceFormatError(f"{json_path}: unreadable ({error})") from error
+    try:
+        header = json.loads(text)
+    except json.JSONDecodeError as error:
+        what = "empty file" if not text.strip() else f"not valid JSON ({error})"
+        raise InstanceFormatError(f"{json_path}: {what}") from error
+    if not isinstance(header, dict):
+        raise InstanceFormatError(f"{json_path}: not an instance header (a JSON "
+                                  f"{type(header).__name__}, expected an object)")
+    return header
+
+
+def _read_arrays(npz_path: Path) -> dict[str, np.ndarray]:
+    """Every array of an instance's ``.npz``; :class:`InstanceFormatError` naming the file
+    when it is missing, empty or truncated."""
+    if not npz_path.exists():
+        raise InstanceFormatError(f"{npz_path}: no such array file (the instance header "
+                                  "is there, its arrays are not)")
+    if npz_path.is_file() and npz_path.stat().st_size == 0:
+        raise InstanceFormatError(f"{npz_path}: empty file (0 bytes)")
+    try:
+        with np.load(npz_path, allow_pickle=False) as stored:
+            return {key: stored[key] for key in stored.files}
+    except Exception as error:  # any failure to decode is a bad file
+        raise InstanceFormatError(f"{npz_path}: unreadable, truncated or not an .npz "
+                                  f"({type(error).__name__}: {error})") from error
+
+
 def load_problem(path: str | Path) -> Problem:
-    """Load an instance from its ``.json`` (or ``.npz``, or the common stem) path."""
+    """Load an instance from its ``.json`` (or ``.npz``, or the common stem) path.
+
+    Raises :class:`InstanceFormatError` naming the file and the problem: a header or array
+    file missing, empty, truncated or of another schema version, a key missing, arrays of
+    the wrong shape.
+    """
     path = Path(path)
     json_path = path.with_suffix(".json") if path.suffix in (".npz", "") else path
     npz_path = json_path.with_suffix(".npz")
-    try:
-        header = json.loads(json_path.read_text())
-    except FileNotFoundError as error:
-        raise InstanceFormatError(f"{json_path}: no such instance file") from error
-    except json.JSONDecodeError as error:
-        raise InstanceFormatError(f"{json_path}: not valid JSON ({error})") from error
+    header = _read_header(json_path, npz_path)
     version = _require(header, "schema_version", json_path)
     if version != SCHEMA_VERSION:
         raise InstanceFormatError(
             f"{json_path}: key 'schema_version' is {version!r}, this c3bench reads "
             f"{SCHEMA_VERSION}; regenerate the instances"
         )
-    name = _require(header, "name", json_path)
-    family = _require(header, "family", json_path)
+    for key in ("name", "family"):
+        _require(header, key, json_path)
     keys = _require(header, "arrays", json_path)
     meta = _require(header, "meta", json_path)
+    if not isinstance(meta, dict) or not isinstance(keys, list):
+        raise InstanceFormatError(f"{json_path}: 'meta' must be an object and 'arrays' a list")
     for key in REQUIRED_META:
         if key not in meta:
             raise InstanceFormatError(f"{json_path}: missing key 'meta.{key}'")
+    arrays = _read_arrays(npz_path)
+    for key in [*keys, "P", "q"]:
+        if key not in arrays:
+            raise InstanceFormatError(f"{npz_path}: missing key {key!r}")
     try:
-        with np.load(npz_path, allow_pickle=False) as stored:
-            arrays = {key: stored[key] for key in stored.files}
-    except FileNotFoundError as error:
-        raise InstanceFormatError(f"{npz_path}: no such array file") from error
-    except (zipfile.BadZipFile, ValueError, OSError) as error:
-        raise InstanceFormatError(f"{npz_path}: unreadable ({error})") from error
-    for key in keys:
-        if key not in arrays:
-            raise InstanceFormatError(f"{npz_path}: missing key {key!r}")
-    for key in ("P", "q"):
-        if key not in arrays:
-            raise InstanceFormatError(f"{npz_path}: missing key {key!r}")
+        return _build_problem(header, arrays, json_path, npz_path)
+    except (TypeError, ValueError) as error:
+        if isinstance(error, InstanceFormatError):
+            raise
+        raise InstanceFormatError(f"{json_path}: {error}") from error
+
+
+def _build_problem(header: dict[str, Any], arrays: dict[str, np.ndarray], json_path: Path,
+                   npz_path: Path) -> Problem:
+    """The :class:`Problem` of a checked header and its arrays (``ValueError`` when the
+    arrays do not fit together)."""
     lcs = None
     if "lcs" in header:
         lcs_header = header["lcs"]
@@ -342,25 +403,93 @@ def load_problem(path: str | Path) -> Problem:
         )
     data = {key[5:]: value for key, value in arrays.items() if key.startswith("data.")}
     return Problem(
-        name=name, family=family, P=arrays["P"], q=arrays["q"],
+        name=header["name"], family=header["family"], P=arrays["P"], q=arrays["q"],
         A=arrays.get("A"), b=arrays.get("b"), G=arrays.get("G"), h=arrays.get("h"),
         lb=arrays.get("lb"), ub=arrays.get("ub"),
         complementarity=arrays.get("complementarity"),
         objective_offset=float(header.get("objective_offset", 0.0)),
-        lcs=lcs, data=data, meta=meta,
+        lcs=lcs, data=data, meta=header["meta"],
     )
 
 
+# --- directories of instances ----------------------------------------------------------------
+MANIFEST = "manifest.json"
+"""The suite manifest beside the family folders (not an instance)."""
+
+
 def list_instances(directory: str | Path) -> list[Path]:
-    """The instance JSON files of a directory (recursively), sorted by path."""
-    return sorted(p for p in Path(directory).rglob("*.json")
-                  if not p.name.startswith(".") and p.with_suffix(".npz").exists())
+    """The instance files of a directory (recursively), as JSON paths sorted by path.
+
+    Every ``.npz`` counts, and every ``.json`` in a folder named after a family or holding an
+    ``.npz`` (the manifest and hidden files aside), so that a header without its arrays, or
+    arrays without their header, are listed (and then fail to load) rather than ignored.
+    """
+    root = Path(directory)
+    found: set[Path] = set()
+    for path in root.rglob("*.npz"):
+        if not path.name.startswith("."):
+            found.add(path.with_suffix(".json"))
+    for path in root.rglob("*.json"):
+        if path.name.startswith(".") or path.name == MANIFEST:
+            continue
+        if path.parent.name in FAMILIES or path.with_suffix(".npz").exists() \
+                or any(path.parent.glob("*.npz")):
+            found.add(path)
+    return sorted(found)
 
 
-def load_instances(directory: str | Path, families: tuple[str, ...] | None = None
-                   ) -> list[Problem]:
-    """Load every instance below ``directory`` (optionally only some families)."""
-    problems = [load_problem(path) for path in list_instances(directory)]
+@dataclass
+class InstanceSet:
+    """The instances of a directory.
+
+    Attributes
+    ----------
+    problems
+        Every instance loaded, in path order.
+    paths
+        The JSON path of each of ``problems`` (same order).
+    skipped
+        One line per bad file left out (``skip_bad=True``): ``path: what is wrong``.
+    """
+
+    problems: list[Problem] = field(default_factory=list)
+    paths: list[Path] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+
+
+def read_instances(directory: str | Path, skip_bad: bool = False) -> InstanceSet:
+    """Load every instance below ``directory``.
+
+    A bad file (see :func:`load_problem`) or a second instance of the same name raises
+    :class:`InstanceFormatError` naming the file and the problem; with ``skip_bad`` it is
+    left out and listed in :attr:`InstanceSet.skipped` instead.
+    """
+    out = InstanceSet()
+    first: dict[str, Path] = {}
+    for path in list_instances(directory):
+        try:
+            problem = load_problem(path)
+            if problem.name in first:
+                raise InstanceFormatError(f"{path}: duplicate instance name {problem.name!r} "
+                                          f"(also in {first[problem.name]})")
+        except InstanceFormatError as error:
+            if not skip_bad:
+                raise
+            out.skipped.append(str(error))
+            continue
+        first[problem.name] = path
+        out.problems.append(problem)
+        out.paths.append(path)
+    return out
+
+
+def load_instances(directory: str | Path, families: tuple[str, ...] | None = None,
+                   skip_bad: bool = False) -> list[Problem]:
+    """Load every instance below ``directory`` (optionally only some families).
+
+    Stops at the first bad file unless ``skip_bad`` (:func:`read_instances`).
+    """
+    problems = read_instances(directory, skip_bad).problems
     if families is not None:
         problems = [p for p in problems if p.family in families]
     return problems

@@ -11,6 +11,10 @@ A suite is generated in three steps:
 3. **Instances** of every family are built at each sampled state from the controller's model
    (``model_l``, the reference study's shrunk 0.29 cube) linearised at that state.
 
+A suite is written into a hidden sibling folder and swapped in whole when complete, so a
+directory never mixes instances of two generations and an interrupted generation leaves the
+previous suite as it was.
+
 The ADMM iterates ``(delta, w)`` behind ``c3plus_qp``/``c3_qp``/``projection`` come from a
 *capture* function (:mod:`c3bench.problems.capture`, which also holds the suite specifications
 :data:`~c3bench.problems.capture.SUITES`). Without one (the default of this module) the
@@ -25,6 +29,9 @@ This module runs the plant (MuJoCo); the instance builders it calls
 from __future__ import annotations
 
 import json
+import os
+import secrets
+import shutil
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -43,7 +50,13 @@ from c3bench.problems.capture import (
 )
 from c3bench.problems.config import Config, load_config
 from c3bench.problems.errors import InputError
-from c3bench.problems.instance import Problem, atomic_write_bytes, save_problem
+from c3bench.problems.instance import (
+    FAMILIES,
+    MANIFEST,
+    Problem,
+    atomic_write_bytes,
+    save_problem,
+)
 from c3bench.problems.linearize import contact_frames, linearize
 from c3bench.problems.mpc import HorizonLayout
 from c3bench.problems.names import Block, Family, Precision, Variant
@@ -182,13 +195,36 @@ def generate_suite(
     Returns the written JSON paths. A ``manifest.json`` records the suite, its arguments,
     the sampled states and the instance counts. Regenerating with the same arguments writes
     byte-identical files.
+
+    The suite is written into a hidden sibling folder and swapped in only when complete
+    (:func:`swap_in`): a directory that already holds a suite is replaced as a whole (never
+    a mix of two generations), and an interrupted or failed generation leaves it as it was.
+    An unknown suite name, ``out_dir`` being a file, or ``out_dir`` holding anything but a
+    suite's instances is an :class:`InputError` raised before anything is written.
     """
     if isinstance(suite, str) and suite not in SUITES:
         raise InputError(f"unknown suite {suite!r}; known: {', '.join(SUITES)}")
     spec = SUITES[suite] if isinstance(suite, str) else suite
-    cfg = config or load_config()
-    capture = capture or provisional_capture
     out = Path(out_dir)
+    check_target(out)
+    cfg = config or load_config()
+    staging = staging_dir(out)
+    try:
+        written = _write_suite(spec, staging, cfg, capture or provisional_capture, progress)
+        swap_in(staging, out)
+    except BaseException as error:
+        shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(error, OSError) and error.strerror and error.filename \
+                and Path(error.filename).is_relative_to(staging):
+            raise type(error)(error.errno, error.strerror,
+                              str(out / Path(error.filename).relative_to(staging))) from error
+        raise
+    return [out / path.relative_to(staging) for path in written]
+
+
+def _write_suite(spec: SuiteSpec, out: Path, cfg: Config, capture: Capture,
+                 progress: bool) -> list[Path]:
+    """Write every instance and the manifest of ``spec`` into ``out``."""
     record = scripted_push(cfg, spec.duration, spec.variant)
     indices = sample_states(record, spec.n_states, spec.contact_band)
     model_scene = build_scene(l=spec.model_l, variant=check_variant(spec.variant), config=cfg)
@@ -217,6 +253,84 @@ def generate_suite(
             counts[problem.family] = counts.get(problem.family, 0) + 1
     manifest = {"suite": asdict(spec), "states": indices, "counts": dict(sorted(counts.items())),
                 "config": {"scene": asdict(cfg.scene), "mpc": asdict(cfg.mpc)}}
-    atomic_write_bytes(out / "manifest.json",
+    atomic_write_bytes(out / MANIFEST,
                        (json.dumps(manifest, indent=2, sort_keys=True) + "\n").encode())
     return written
+
+
+# --- replacing a suite as a whole ----------------------------------------------------------------
+def check_target(out: Path) -> None:
+    """Refuse an instance directory that a generation must not replace.
+
+    ``out`` may be absent, empty, or hold a suite (``manifest.json``, family folders and
+    temporary files of an interrupted write only); a file, the current directory (or one
+    above it) and a directory holding anything else raise :class:`InputError`.
+    """
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    if not out.is_dir():
+        return
+    here, target = Path.cwd().resolve(), out.resolve()
+    if target == here or target in here.parents:
+        raise InputError(f"{out}: is the current directory or above it; generate into a "
+                         "subdirectory")
+    foreign = sorted(child.name for child in out.iterdir()
+                     if not (child.name == MANIFEST
+                             or (child.is_dir() and child.name in FAMILIES)
+                             or (child.name.startswith(".") and child.name.endswith(".tmp"))))
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise InputError(f"{out}: holds files that are not a suite's instances ({shown}); "
+                         "generate into a new or empty directory")
+
+
+def staging_dir(out: Path) -> Path:
+    """A new hidden sibling folder of ``out`` to generate into (leftovers of dead processes
+    removed first)."""
+    parent = out.absolute().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    for leftover in parent.glob(f".{out.name}.*-*-*"):
+        kind, pid = leftover.name[len(out.name) + 2:].split("-", 2)[:2]
+        if kind in ("generating", "old") and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(leftover, ignore_errors=True)
+    staging = parent / f".{out.name}.generating-{os.getpid()}-{secrets.token_hex(4)}"
+    staging.mkdir()
+    return staging
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def swap_in(staging: Path, out: Path) -> None:
+    """Make the complete suite in ``staging`` the content of ``out``.
+
+    Absent ``out``: one rename. ``out`` holding a suite: rename it aside, rename ``staging``
+    in, delete the old one (put back if the second rename fails). Empty ``out``: move the
+    family folders in, the manifest last (a partial move has no manifest, so a run
+    regenerates it).
+    """
+    if not out.exists():
+        os.rename(staging, out)
+        return
+    if not any(out.iterdir()):
+        children = sorted(staging.iterdir(), key=lambda child: child.name == MANIFEST)
+        for child in children:
+            os.rename(child, out / child.name)
+        staging.rmdir()
+        return
+    old = staging.with_name(f".{out.name}.old-{os.getpid()}-{secrets.token_hex(4)}")
+    os.rename(out, old)
+    try:
+        os.rename(staging, out)
+    except BaseException:
+        os.rename(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
