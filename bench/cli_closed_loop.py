@@ -5,15 +5,40 @@ handler here takes the parsed namespace and returns an exit code (:mod:`bench.cl
 command writes under the results root ``--results ROOT`` (:func:`bench.store.closed_loop_dir`):
 ``ROOT/closed_loop/runs/<controller>/`` (one run), ``ROOT/closed_loop/<suite>/`` and
 ``ROOT/closed_loop/sweep/``.
+
+Every option is checked before anything is simulated (:mod:`bench.closed_loop_checks`): the
+backends exist, are available and take the controller's QP family, durations are whole
+numbers of control periods, and the output directory (and ``--render`` path) can be written,
+so a bad path fails at once instead of after the run. A single run's records are written
+before its animation is rendered: a failed render loses nothing.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 from c3bench.bench import store
-from c3bench.problems.errors import RenderUnavailable
+from c3bench.bench.cli_options import EXIT_ERROR, EXIT_OK
+from c3bench.bench.closed_loop_checks import (
+    check_backends,
+    check_render_path,
+    control_steps,
+    writable_directory,
+)
+from c3bench.problems.errors import InputError, RenderUnavailable
+
+
+def _missing(run: Any) -> int:
+    """Exit code of a closed-loop suite: 1 (with what is missing) when infrastructure faults
+    left runs without a result, else 0."""
+    if not run.missing:
+        return EXIT_OK
+    reasons = "; ".join(run.missing_reasons)
+    print(f"{run.missing} runs missing ({reasons}); run again to complete them",
+          file=sys.stderr)
+    return EXIT_ERROR
 
 
 def cmd_closed_loop(args: argparse.Namespace) -> int:
@@ -33,11 +58,17 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
                           projection=args.projection, rho_schedule=args.rho_schedule,
                           admm_iterations=args.iterations, model_l=args.model_l,
                           samples=args.samples, weighting=not args.no_weighting,
-                          seed=args.seed, feedback=args.feedback)
+                          seed=args.seed, feedback=args.feedback,
+                          qp_time_limit=args.qp_time_limit)
+    control_steps(args.duration, config.mpc.dt, "--duration")
+    check_backends(spec)
+    runs = writable_directory(store.closed_loop_dir(args.results, "runs"), "--results")
+    if args.render:
+        check_render_path(args.render)
     trajectory, records, outcome = run_closed_loop(spec, config, args.duration,
                                                    progress=not args.quiet)
     scene = build_scene(config=config)
-    out = store.closed_loop_dir(args.results, "runs") / spec.label()
+    out = runs / spec.label()
     write_run(out, trajectory, records, scene, run_summary(spec, trajectory, outcome))
     print(f"controller        {spec.label()}")
     print(f"success           {'yes' if outcome.success else 'no'}")
@@ -50,6 +81,8 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
           f"{1e3 * outcome.median_lcs_time:.1f} ms, solve "
           f"{1e3 * outcome.median_solve_time:.1f} ms)")
     print(f"fallbacks / NaNs  {outcome.fallback_count} / {outcome.nan_count}")
+    print(f"QP failures       {outcome.qp_failure_steps} of {outcome.steps} steps"
+          + (f" (first: {outcome.qp_failure})" if outcome.qp_failure else ""))
     print(f"records           {out}")
     if args.render:
         try:
@@ -57,20 +90,25 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
             print(f"animation         {path}")
         except RenderUnavailable as error:
             print(f"animation skipped: {error}", file=sys.stderr)
-    return 0
+        except (OSError, ValueError) as error:  # the records above are already written
+            print(f"error: animation not written to {args.render}: {error}",
+                  file=sys.stderr)
+            return EXIT_ERROR
+    return EXIT_OK
 
 
 def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
     """Run a closed-loop suite (resumable) and write its report."""
     from c3bench.bench.closed_loop_suite import CLOSED_LOOP_SUITES, run_cases, write_report
 
-    directory = store.closed_loop_dir(args.results, args.suite)
+    directory = writable_directory(store.closed_loop_dir(args.results, args.suite),
+                                   "--results")
     run = run_cases(CLOSED_LOOP_SUITES[args.suite], directory, jobs=args.jobs,
                     scheduler=args.scheduler, rerun=args.rerun, progress=not args.quiet)
     report = write_report(run, f"suite `{args.suite}`", render=not args.no_render)
     succeeded = sum(bool(row.get("success")) for row in run.rows)
     print(f"{len(run.rows)} runs ({run.skipped} stored), {succeeded} succeeded; report: {report}")
-    return 0
+    return _missing(run)
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -78,9 +116,17 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from c3bench.bench.closed_loop_suite import run_cases, sweep_cases, write_report
 
     cases = sweep_cases(args.dt, args.rho_schedule, args.q_box, args.model_l, args.qp_backend)
-    directory = store.closed_loop_dir(args.results, "sweep")
+    if cases:
+        check_backends(cases[0].spec)  # every case of the sweep has the same QP backend
+    for case in cases:
+        try:
+            control_steps(case.duration, float(case.dt or 0.0))
+        except InputError:
+            raise InputError(f"--dt {case.dt:g}: a sweep run lasts {case.duration:g} s, not a "
+                             f"whole number of control periods of {case.dt:g} s") from None
+    directory = writable_directory(store.closed_loop_dir(args.results, "sweep"), "--results")
     run = run_cases(cases, directory, jobs=args.jobs, scheduler=args.scheduler,
                     rerun=args.rerun, progress=not args.quiet)
     report = write_report(run, "hyperparameter sweep", render=False)
     print(f"{len(run.rows)} runs ({run.skipped} stored); report: {report}")
-    return 0
+    return _missing(run)

@@ -19,12 +19,15 @@ Failure-mode rules (thresholds in :class:`FailureRules`), checked in this order:
    farther than ``contact_gap`` from the cube for at least ``lost_time`` after the peak, and the
    final angle is at least ``fall_back`` below the peak.
 5. **unlabelled**: none of the above (reported as such, never forced into a mode).
+
+The controllers (:class:`ControllerSpec`, :func:`make_policy`, the per-solve time limit of
+their QP backends) live in :mod:`bench.closed_loop_policy` and are re-exported here.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,10 +35,31 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from c3bench.bench.closed_loop_checks import check_backends, control_steps
+from c3bench.bench.closed_loop_policy import (
+    CONTROLLERS,
+    FAST_CONTROLLERS,
+    ROBUST_CONTROLLERS,
+    ControllerSpec,
+    Policy,
+    make_policy,
+    pd_tracking_law,
+    planned_ball_state,
+    step_backends,
+    step_failures,
+)
 from c3bench.problems.config import Config, load_config
-from c3bench.problems.names import Variant
 from c3bench.problems.scene import Plant, Scene, build_scene, home_state
+from c3bench.solvers.isolation import IsolationFailed
 from c3bench.solvers.timing import single_thread_blas
+
+__all__ = [
+    "CONTROLLERS", "FAILURE_MODES", "FAST_CONTROLLERS", "ROBUST_CONTROLLERS",
+    "ClosedLoopOutcome", "ControllerSpec", "FailureRules", "Policy", "StepRecord", "Trajectory",
+    "cube_geometry", "label_failure_mode", "make_policy", "pd_tracking_law",
+    "planned_ball_state", "records_frame", "render_run", "run_closed_loop", "run_summary",
+    "simulate", "step_backends", "step_failures", "summarise", "write_run",
+]
 
 FAILURE_MODES: dict[int, str] = {
     0: "success",
@@ -134,7 +158,14 @@ def label_failure_mode(trajectory: Trajectory, scene: Scene, target_angle: float
 
 @dataclass
 class StepRecord:
-    """One control step of a closed-loop run."""
+    """One control step of a closed-loop run.
+
+    ``qp_failures`` counts the controller's failed sub-solves in the step (a QP step or a
+    projection whose backend raised, rejected the instance, overran the per-step time limit or
+    returned no or a non-finite answer; the ADMM stops at the first, so 0 or 1), with
+    ``qp_failure`` the first one's reason; ``fallback_reason`` says why the last safe input
+    was held (``""`` when ``ok``).
+    """
 
     time: float
     state: np.ndarray
@@ -144,6 +175,9 @@ class StepRecord:
     ok: bool
     nan_count: int
     info: dict[str, float] = field(default_factory=dict)
+    qp_failures: int = 0
+    qp_failure: str = ""
+    fallback_reason: str = ""
 
 
 @dataclass
@@ -162,15 +196,12 @@ class ClosedLoopOutcome:
     nan_count: int
     fallback_count: int
     steps: int
+    qp_failure_steps: int = 0
+    qp_failure: str = ""
 
     @property
     def failure_label(self) -> str:
         return FAILURE_MODES[self.failure_mode]
-
-
-Policy = Callable[[np.ndarray, float], tuple[np.ndarray, dict[str, Any]]]
-"""``policy(x, t) -> (u, info)``; ``info`` may carry ``lcs_time``, ``solve_time``, ``ok``,
-``nan_count`` and scalar diagnostics."""
 
 
 def _bind_input(law: Callable[[np.ndarray, float, np.ndarray], np.ndarray], u: np.ndarray
@@ -190,7 +221,10 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
     """Run ``policy`` on the MuJoCo plant for ``duration`` seconds, replanning every ``dt``.
 
     A policy that returns a non-finite input, or raises, is a failed step: the last safe input
-    is held instead and the step is counted (``ok = False``).
+    is held instead and the step is counted (``ok = False``, with its ``fallback_reason``).
+    :class:`~c3bench.solvers.isolation.IsolationFailed` (no solver process could be started)
+    is an infrastructure fault, not a step: it stops the run.
+    ``duration`` must be a positive multiple of ``dt`` (:class:`InputError` otherwise).
     """
     cfg = config or load_config()
     scene = plant_scene or build_scene(config=cfg)
@@ -198,9 +232,7 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
     state = home_state(scene) if x0 is None else np.asarray(x0, dtype=float)
     plant.reset(state)
     dt = cfg.mpc.dt
-    steps = round(duration / dt)
-    if steps < 1 or abs(steps * dt - duration) > 1e-9:
-        raise ValueError(f"duration must be a positive multiple of dt = {dt}, got {duration}")
+    steps = control_steps(duration, dt)
     last_safe = np.zeros(scene.nu)
     records: list[StepRecord] = []
     states, inputs, gaps, times = [state], [], [cube_geometry(scene, state)["ball_gap"]], [0.0]
@@ -210,14 +242,20 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
         try:
             u, info = policy(state, t)
             u = np.asarray(u, dtype=float)
+        except IsolationFailed:  # no solver process could start: not the controller's doing
+            raise
         except Exception as error:  # noqa: BLE001 - a crashing controller is a counted step
-            u, info = np.full(scene.nu, np.nan), {"error": str(error), "ok": False}
+            u, info = np.full(scene.nu, np.nan), {
+                "ok": False, "fallback_reason": f"controller raised "
+                                                f"{type(error).__name__}: {error}"}
         wall = time.perf_counter() - start
         nan_count = int(info.get("nan_count", 0))
         ok = bool(info.get("ok", True))
+        reason = str(info.get("fallback_reason", "")) if not ok else ""
         if u.shape != (scene.nu,) or not np.all(np.isfinite(u)):
             nan_count += 1
             ok = False
+            reason = reason or f"non-finite or mis-shaped input {u.tolist()}"
             u = last_safe
         else:
             u = np.clip(u, -cfg.scene.force_limit, cfg.scene.force_limit)
@@ -227,10 +265,13 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
         solve_time = float(info.get("solve_time", wall - lcs_time))
         scalars = {key: float(value) for key, value in info.items()
                    if isinstance(value, int | float) and key not in
-                   ("lcs_time", "solve_time", "ok", "nan_count")}
+                   ("lcs_time", "solve_time", "ok", "nan_count", "qp_failures")}
         scalars["wall_time"] = wall
         records.append(StepRecord(t, state.copy(), u.copy(), lcs_time, solve_time, ok,
-                                  nan_count, scalars))
+                                  nan_count, scalars,
+                                  qp_failures=int(info.get("qp_failures", 0)),
+                                  qp_failure=str(info.get("qp_failure", "")),
+                                  fallback_reason=reason))
         law = info.get("control_law") if ok else None
         state = plant.step_with(_bind_input(law, u), dt) if law else plant.step(u, dt)
         states.append(state)
@@ -251,6 +292,7 @@ def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
     mode, reason = label_failure_mode(trajectory, scene, target, config.mpc.success_tolerance)
     final = scene.cube_angle(trajectory.states[-1])
     walls = np.array([r.info.get("wall_time", r.lcs_time + r.solve_time) for r in records])
+    failed = [r for r in records if r.qp_failures]
     return ClosedLoopOutcome(
         success=mode == 0,
         angle_error=abs(final - target),
@@ -264,213 +306,9 @@ def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
         nan_count=int(sum(r.nan_count for r in records)),
         fallback_count=int(sum(not r.ok for r in records)),
         steps=len(records),
+        qp_failure_steps=len(failed),
+        qp_failure=failed[0].qp_failure if failed else "",
     )
-
-
-# --- controllers in the loop ------------------------------------------------------------------
-CONTROLLERS: tuple[str, ...] = ("c3", "c3plus", "c3plus-robust", "c3plus-fast",
-                                 "c3plus-fast-robust")
-ROBUST_CONTROLLERS: tuple[str, ...] = ("c3plus-robust", "c3plus-fast-robust")
-FAST_CONTROLLERS: tuple[str, ...] = ("c3plus-fast", "c3plus-fast-robust")
-
-
-@dataclass(frozen=True)
-class ControllerSpec:
-    """Which controller drives the plant, and how.
-
-    Attributes
-    ----------
-    controller
-        ``c3`` (MIQP projection), ``c3plus`` (closed-form projection), ``c3plus-robust``
-        (``samples`` models with ``l ~ U[l_low, l_high]`` sharing their inputs, one stacked
-        QP), or the fast path ``c3plus-fast`` / ``c3plus-fast-robust`` (batched Riccati QP
-        steps and batched LCS build, :mod:`solvers.fast`; ``qp_backend`` is ignored).
-    qp_backend, projection
-        Registry names of the QP-step solver and of C3's MIQP projection.
-    rho_schedule
-        ``geometric`` (the reference study's), ``adaptive`` or ``residual_balancing``.
-    admm_iterations
-        ADMM iterations per control step (seed: 10).
-    model_l
-        Cube side of the single model (seed: the shrunk 0.29).
-    samples, l_low, l_high
-        Robust variant: number of sampled models and the range of their sides.
-    weighting
-        Robust variant: weight samples by their one-step LCP prediction error on the
-        observations so far (seed section 3.3).
-    seed
-        Seed of the sampled sides.
-    feedback, feedback_kp, feedback_kd
-        Low-level feedback between control steps (the reference study's "low-level PD controller"):
-        at every plant step ``u = u_0 + kp (p_ref - p) + kd (v_ref - v)`` on the ball, where
-        ``p_ref`` moves linearly from the measured ball position to the plan's ``x_1`` over
-        ``dt`` and ``v_ref`` is the plan's ``x_1`` ball velocity (weighted over samples).
-        Without it ``u_0`` is held for ``dt`` (zero-order hold). The reference study's optimised
-        gain ``K`` regularised toward a PD law is not implemented.
-    """
-
-    controller: str = "c3plus"
-    qp_backend: str = "clarabel"
-    projection: str = "scip"
-    rho_schedule: str = "geometric"
-    admm_iterations: int = 10
-    model_l: float = 0.29
-    samples: int = 16
-    l_low: float = 0.27
-    l_high: float = 0.33
-    weighting: bool = True
-    seed: int = 0
-    feedback: bool = False
-    feedback_kp: float = 100.0
-    feedback_kd: float = 20.0
-
-    def __post_init__(self) -> None:
-        if self.controller not in CONTROLLERS:
-            raise ValueError(f"controller must be one of {CONTROLLERS}, got "
-                             f"{self.controller!r}")
-        if self.samples < 1:
-            raise ValueError(f"samples must be >= 1, got {self.samples}")
-        if not 0 < self.l_low <= self.l_high:
-            raise ValueError(f"need 0 < l_low <= l_high, got {self.l_low}, {self.l_high}")
-
-    def sample_sides(self) -> np.ndarray:
-        """The robust variant's model sides (seeded, sorted)."""
-        rng = np.random.default_rng(self.seed)
-        return np.sort(rng.uniform(self.l_low, self.l_high, self.samples))
-
-    @property
-    def robust(self) -> bool:
-        return self.controller in ROBUST_CONTROLLERS
-
-    def label(self) -> str:
-        extra = f"-n{self.samples}" if self.robust else f"-l{self.model_l:g}"
-        backend = "riccati" if self.controller in FAST_CONTROLLERS else self.qp_backend
-        feedback = "-pd" if self.feedback else ""
-        return f"{self.controller}-{backend}-{self.rho_schedule}{extra}{feedback}"
-
-
-def make_policy(spec: ControllerSpec, config: Config) -> Policy:
-    """A policy that linearises the controller's model(s) at the measured state and runs C3.
-
-    The LCS is built at ``(x, u_prev)`` every control step (``lcs_time``); the controller warm
-    starts from its previous step. The robust variants weight their samples by the one-step
-    LCP prediction error on the last five observed transitions ``(x_t, u_t, x_{t+1})``. The
-    reference controller (:mod:`solvers.c3`) and the fast path (:mod:`solvers.fast`, batched
-    LCS build) differ only in how the models are built and the step is solved.
-    """
-    from c3bench.problems.scene import build_mpc
-    from c3bench.solvers.c3 import lcp_prediction_weights
-
-    sides = spec.sample_sides() if spec.robust else np.array([spec.model_l])
-    scene = build_scene(l=float(sides[0]), config=config)
-    mpc = build_mpc(scene, config.mpc)
-    dt = config.mpc.dt
-    if spec.controller in FAST_CONTROLLERS:
-        from c3bench.problems.linearize_batch import BatchLinearizer
-        from c3bench.solvers.fast import FastC3Plus, FastC3PlusController, fast_options
-
-        linearizer = BatchLinearizer(sides, config)
-        fast = FastC3PlusController(FastC3Plus(mpc, fast_options(
-            rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations)))
-
-        def models_at(x: np.ndarray, u: np.ndarray) -> Any:
-            return linearizer.linearize(x, u, dt)
-
-        def samples_of(models: Any) -> list[Any]:
-            return models.samples()
-
-        def solve(models: Any, weights: Sequence[float] | None, x: np.ndarray) -> Any:
-            return fast.step(models, x, weights)
-    else:
-        from c3bench.problems.linearize import linearize
-        from c3bench.solvers.c3 import C3Controller, C3Options
-
-        scenes = [scene] + [build_scene(l=float(side), config=config) for side in sides[1:]]
-        reference = C3Controller(C3Options(
-            variant=Variant.C3 if spec.controller == "c3" else Variant.C3PLUS,
-            qp_backend=spec.qp_backend, projection_backend=spec.projection,
-            rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
-            keep_iterates=False))
-
-        def models_at(x: np.ndarray, u: np.ndarray) -> Any:
-            return [linearize(model, x, u, dt) for model in scenes]
-
-        def samples_of(models: Any) -> list[Any]:
-            return models
-
-        def solve(models: Any, weights: Sequence[float] | None, x: np.ndarray) -> Any:
-            if spec.robust:
-                return reference.step_robust(models, weights, mpc, x)
-            return reference.step(models[0], mpc, x)
-
-    history: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    previous: dict[str, np.ndarray] = {}
-
-    def policy(x: np.ndarray, t: float) -> tuple[np.ndarray, dict[str, Any]]:
-        u_prev = previous.get("u", np.zeros(scene.nu))
-        if "x" in previous:
-            history.append((previous["x"], u_prev, x.copy()))
-        start = time.perf_counter()
-        models = models_at(x, u_prev)
-        lcs_time = time.perf_counter() - start
-        start = time.perf_counter()
-        weights: Sequence[float] | None = None
-        if spec.robust and spec.weighting:
-            weights = lcp_prediction_weights(samples_of(models), history[-5:]).tolist()
-        weight_time = time.perf_counter() - start
-        solution = solve(models, weights, x)
-        solve_time = time.perf_counter() - start
-        u = np.asarray(solution.u, dtype=float)
-        previous["x"], previous["u"] = x.copy(), u.copy()
-        raw = solution.u_raw
-        info: dict[str, Any] = {
-            "lcs_time": lcs_time, "solve_time": solve_time, "weight_time": weight_time,
-            "ok": solution.ok, "iterations": solution.iterations,
-            "nan_count": int(not solution.ok and raw is not None
-                             and not np.all(np.isfinite(raw)))}
-        trace = getattr(solution, "trace", None)
-        residuals = trace.consensus_residual if trace is not None \
-            else solution.consensus_residual
-        if residuals:
-            info["consensus_residual"] = float(residuals[-1])
-        if trace is not None and trace.complementarity_delta:
-            info["complementarity_delta"] = float(trace.complementarity_delta[-1])
-        if spec.feedback and solution.ok:
-            plan = planned_ball_state(solution.delta, solution.weights, scene.nq,
-                                      scene.ball_position_indices, scene.nq - scene.nv)
-            info["control_law"] = pd_tracking_law(spec, scene, x, plan, dt)
-        return u, info
-
-    return policy
-
-
-def planned_ball_state(delta: np.ndarray, weights: np.ndarray | None, nq: int,
-                       ball: np.ndarray, nv_offset: int) -> tuple[np.ndarray, np.ndarray]:
-    """Ball position and velocity of the plan's ``x_1`` (``delta`` is (S, T, step), ``x``
-    first in each step), averaged over samples with ``weights``."""
-    x1 = np.asarray(delta)[:, 1 if delta.shape[1] > 1 else 0, :]
-    p = np.full(x1.shape[0], 1.0 / x1.shape[0]) if weights is None else \
-        np.asarray(weights, dtype=float) / np.sum(weights)
-    mean = p @ x1
-    return mean[ball], mean[nq + ball - nv_offset]
-
-
-def pd_tracking_law(spec: ControllerSpec, scene: Scene, x: np.ndarray,
-                    reference: tuple[np.ndarray, np.ndarray], dt: float
-                    ) -> Callable[[np.ndarray, float, np.ndarray], np.ndarray]:
-    """``law(x, s, u0) = u0 + kp (p_ref(s) - p) + kd (v_ref - v)`` on the ball (see
-    :class:`ControllerSpec` ``feedback``)."""
-    ball = scene.ball_position_indices
-    ball_v = scene.nq + ball - (scene.nq - scene.nv)
-    start = x[ball].copy()
-    end, velocity = reference
-
-    def law(state: np.ndarray, s: float, u0: np.ndarray) -> np.ndarray:
-        target = start + (end - start) * min(1.0, s / dt)
-        return u0 + spec.feedback_kp * (target - state[ball]) \
-            + spec.feedback_kd * (velocity - state[ball_v])
-
-    return law
 
 
 def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
@@ -479,17 +317,31 @@ def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
                     ) -> tuple[Trajectory, list[StepRecord], ClosedLoopOutcome]:
     """Drive the true plant with the controller of ``spec`` for ``duration`` seconds.
 
-    ``x0`` is the plant's initial state (default: :func:`problems.scene.home_state`).
+    ``x0`` is the plant's initial state (default: :func:`problems.scene.home_state`). The
+    backends and the duration are checked first (:class:`InputError`), and each QP solve
+    runs under ``spec.qp_time_limit`` (:func:`step_backends`).
     """
     cfg = config or load_config()
+    steps = control_steps(duration, cfg.mpc.dt)
+    check_backends(spec)
     plant_scene = build_scene(config=cfg)
-    policy = make_policy(spec, cfg)
+    with step_backends(spec) as backends:
+        policy = make_policy(spec, cfg, backends)
+        trajectory, records = _simulate_with_progress(spec, policy, cfg, duration, steps,
+                                                      plant_scene, progress, x0)
+    return trajectory, records, summarise(trajectory, records, plant_scene, cfg)
+
+
+def _simulate_with_progress(spec: ControllerSpec, policy: Policy, cfg: Config,
+                            duration: float, steps: int, plant_scene: Scene, progress: bool,
+                            x0: np.ndarray | None) -> tuple[Trajectory, list[StepRecord]]:
+    """:func:`simulate` with one BLAS thread and, when ``progress``, a progress bar."""
     bar = None
     callback = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=round(duration / cfg.mpc.dt), desc=spec.label(), unit="step")
+        bar = tqdm(total=steps, desc=spec.label(), unit="step")
 
         def callback(done: int, total: int) -> None:
             bar.update(1)
@@ -501,7 +353,7 @@ def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
     finally:
         if bar is not None:
             bar.close()
-    return trajectory, records, summarise(trajectory, records, plant_scene, cfg)
+    return trajectory, records
 
 
 def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scene
@@ -515,7 +367,10 @@ def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scen
                                "cube_angle": scene.cube_angle(record.state),
                                "ball_gap": float(trajectory.ball_gap[k]),
                                "lcs_time": record.lcs_time, "solve_time": record.solve_time,
-                               "ok": record.ok, "nan_count": record.nan_count}
+                               "ok": record.ok, "nan_count": record.nan_count,
+                               "qp_failures": record.qp_failures,
+                               "qp_failure": record.qp_failure,
+                               "fallback_reason": record.fallback_reason}
         row.update({f"x{i}": float(v) for i, v in enumerate(record.state)})
         row.update({f"u{i}": float(v) for i, v in enumerate(record.input)})
         row.update(record.info)

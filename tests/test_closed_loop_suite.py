@@ -24,8 +24,10 @@ def test_suite_runs_stores_resumes_and_reports(tmp_path: Path) -> None:
     assert first.skipped == 0
     rows = {row["case"]: row for row in first.rows}
     assert rows["nominal"]["steps"] == 5 and rows["nominal"]["error"] == ""
-    # an unknown QP backend fails every control step: counted fallbacks, not a crash
-    assert rows["broken"]["fallback_count"] == 5
+    # an unknown QP backend is refused before the run: an error row, no cell stored
+    assert rows["broken"]["failure_mode"] == -1
+    assert "unknown solver 'no_such_solver'" in rows["broken"]["error"]
+    assert not (tmp_path / "cells" / "broken").exists()
     from c3bench.problems.config import load_config
 
     config = load_config()
@@ -36,8 +38,9 @@ def test_suite_runs_stores_resumes_and_reports(tmp_path: Path) -> None:
     stored = pd.read_parquet(tmp_path / "results.parquet")
     assert list(stored["case"]) == ["nominal", "jittered", "broken"]
     again = run_cases(short_cases(), tmp_path, jobs=2, progress=False)
-    assert again.skipped == 3
-    assert [r["final_angle"] for r in again.rows] == [r["final_angle"] for r in first.rows]
+    assert again.skipped == 2  # the error row is not stored: tried again
+    assert [r.get("final_angle") for r in again.rows] == \
+        [r.get("final_angle") for r in first.rows]
     report = write_report(again, "test", render=False)
     text = report.read_text()
     assert "nominal" in text and "![error](figures/closed_loop_error.png)" in text
