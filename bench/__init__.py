@@ -8,7 +8,12 @@
 * :mod:`~c3bench.bench.reference`: reference optima; :mod:`~c3bench.bench.metrics`: success
   and aggregates; :mod:`~c3bench.bench.store`: every stored table, its schema and version;
 * :mod:`~c3bench.bench.report`, :mod:`~c3bench.bench.plots`, :mod:`~c3bench.bench.compare`:
-  what the results say;
+  what the results say, with :mod:`~c3bench.bench.accuracy` (accuracy profiles, Pareto
+  front, claimed-but-wrong cells), :mod:`~c3bench.bench.budgets` (control budget),
+  :mod:`~c3bench.bench.report_accuracy` and :mod:`~c3bench.bench.tables` (report sections and
+  tables), :mod:`~c3bench.bench.palette` and :mod:`~c3bench.bench.figure_base` (figure
+  conventions), :mod:`~c3bench.bench.plots_time`, :mod:`~c3bench.bench.plots_accuracy` and
+  :mod:`~c3bench.bench.plots_solver` (the figures);
 * :mod:`~c3bench.bench.perf`: control-step timing; :mod:`~c3bench.bench.closed_loop`,
   :mod:`~c3bench.bench.closed_loop_suite`: the controllers driving the MuJoCo cube.
 """

@@ -22,20 +22,34 @@ demand 1e-12 relative accuracy; this is OSQP's mixed test with ``eps_abs = eps_r
   ``s`` the disagreement between the reference and its cross-check (the reference's own
   uncertainty; see :mod:`bench.reference`).
 
-Aggregates (per family, settings, precision, start, solver)
------------------------------------------------------------
-Shifted geometric mean of values ``v_1..v_n`` with shift ``s``:
+Ranked time
+-----------
+Every ranking (time columns, performance profiles, ``compare``, Pareto plots, budgets) reads
+the time of a cell through :func:`ranked_time`, i.e. the column :data:`RANKED_TIME_COLUMN`;
+changing what the benchmark ranks by is a change of that one constant.
+
+Aggregates (per family, variant, settings, precision, start, solver)
+--------------------------------------------------------------------
+Shifted geometric mean of values ``v_1..v_n`` with shift ``s`` (qpbenchmark's aggregate):
 
     sgm(v) = exp( (1/n) sum_i log(v_i + s) ) - s.
 
-* solve time: ``s = TIME_SHIFT = 1e-4`` s (0.1 ms: the solves are sub-millisecond), a failed
-  cell counted at its time limit (as qpbenchmark does), normalised by the best solver of the
-  same (family, settings, precision, start) so the best has 1.0;
-* relative residuals and cost error: floored at the tolerance (``max(v, eps)``: below tolerance is
-  "solved", finer differences are noise), over the cells where they are finite, no shift;
-  normalised by the best solver likewise;
+* time: ``s = TIME_SHIFT = 1e-4`` s (0.1 ms: the solves are sub-millisecond) over the ranked
+  times, a failed cell counted at its time limit (as qpbenchmark does), normalised by the best
+  solver of the same (family, variant, settings, precision, start) so the best has 1.0;
+* relative residuals, complementarity and cost error: plain geometric means of the actual
+  values, ``gm(v) = exp(mean(log(max(v, LOG_FLOOR))))`` over the cells where they are finite,
+  **not** floored at the tolerance (a solver at 1e-16 and one at 1e-4 differ in the table);
+  ``LOG_FLOOR = 1e-300`` only keeps ``log`` finite on exact zeros; normalised by the best
+  solver likewise; ``worst_gm`` is the same mean of each cell's worst required figure
+  (:func:`worst_residual`);
 * iterations, time per iteration (``solve_time / iterations``): medians over successful cells;
 * condition numbers (raw and equilibrated Schur complement, KKT): medians.
+
+The *variant* of a cell is the ADMM variant its instance was captured for (``c3`` or
+``c3plus``, the second ``-`` field of the instance name, e.g. ``projection-c3-s005-i00-k0``;
+empty for families without variants): a backend that takes one variant only (C3+'s
+closed-form projection) is compared on that variant's instances only.
 """
 
 from __future__ import annotations
@@ -47,15 +61,49 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, QP_FAMILIES, Family
+from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, QP_FAMILIES, Family, Variant
 
 TIME_SHIFT = 1e-4
+LOG_FLOOR = 1e-300
+"""The only floor of the accuracy means: keeps ``log`` finite on exact zeros."""
+RANKED_TIME_COLUMN = "solve_time"
+"""The results column every ranking reads (:func:`ranked_time`)."""
 DUAL_FAMILIES: tuple[Family, ...] = QP_FAMILIES
 """Families whose solutions carry meaningful duals (convex QPs and the LCP)."""
 NO_DUAL_FAMILIES: tuple[Family, ...] = COMPLEMENTARITY_FAMILIES
 """Mixed-integer families: no dual certificate, duals neither required nor checked."""
-GROUP_COLUMNS: tuple[str, ...] = ("family", "settings", "precision", "start", "solver")
-PEER_COLUMNS: tuple[str, ...] = ("family", "settings", "precision", "start")
+VARIANT_COLUMN = "variant"
+GROUP_COLUMNS: tuple[str, ...] = (
+    "family", VARIANT_COLUMN, "settings", "precision", "start", "solver")
+PEER_COLUMNS: tuple[str, ...] = GROUP_COLUMNS[:-1]
+
+
+def ranked_time(frame: pd.DataFrame) -> np.ndarray:
+    """The time each row is ranked by (seconds): column :data:`RANKED_TIME_COLUMN`."""
+    return frame[RANKED_TIME_COLUMN].to_numpy(dtype=float)
+
+
+def ranked_time_label() -> str:
+    """The ranked time's name for labels and captions (``solve time``)."""
+    return RANKED_TIME_COLUMN.replace("_", " ")
+
+
+def instance_variant(instance: str) -> str:
+    """``c3`` / ``c3plus`` when the instance name's second ``-`` field is a variant, else ``""``."""
+    parts = str(instance).split("-")
+    return parts[1] if len(parts) > 2 and parts[1] in tuple(Variant) else ""
+
+
+def with_variants(frame: pd.DataFrame) -> pd.DataFrame:
+    """``frame`` with a :data:`VARIANT_COLUMN` (computed from ``instance`` when missing)."""
+    if VARIANT_COLUMN in frame.columns:
+        return frame
+    return frame.assign(**{VARIANT_COLUMN: [instance_variant(i) for i in frame["instance"]]})
+
+
+def family_label(family: str, variant: str) -> str:
+    """``family`` or ``family (variant variant)`` for headings and panels."""
+    return f"{family} ({variant} variant)" if variant else str(family)
 
 
 def required_residuals(family: str) -> tuple[str, ...]:
@@ -73,6 +121,19 @@ def _number(value: Any) -> float:
         return float("nan")
 
 
+def has_reference(row: Mapping[str, Any]) -> bool:
+    """Whether the row's instance has a reference optimum ``f*`` (cost error is judged)."""
+    return bool(row.get("reference_solver")) and math.isfinite(
+        _number(row.get("reference_objective")))
+
+
+def accuracy_columns(row: Mapping[str, Any]) -> tuple[str, ...]:
+    """The figures success checks for this row: required residuals, plus ``cost_error``
+    where a reference exists."""
+    columns = required_residuals(str(row["family"]))
+    return (*columns, "cost_error") if has_reference(row) else columns
+
+
 def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
     """``(success, verdict)`` of one row; ``verdict`` says why it failed (``""`` on success)."""
     if not bool(row["found"]):
@@ -87,7 +148,7 @@ def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
             reasons.append(f"{column} unavailable")
         elif not value <= tolerance:
             reasons.append(f"{column} {value:.2e} > {tolerance:.0e}")
-    if row.get("reference_solver") and math.isfinite(_number(row.get("reference_objective"))):
+    if has_reference(row):
         error = _number(row.get("cost_error"))
         spread = _number(row.get("reference_spread"))
         threshold = max(tolerance, spread) if math.isfinite(spread) else tolerance
@@ -105,6 +166,17 @@ def success_series(frame: pd.DataFrame) -> pd.Series:
     return frame.apply(lambda row: judge(row)[0], axis=1).astype(bool)
 
 
+def worst_residual(frame: pd.DataFrame) -> np.ndarray:
+    """Per row, ``max`` of :func:`accuracy_columns` (actual values, no floor); NaN when one
+    of them is not finite."""
+    out = np.full(len(frame), np.nan)
+    for i, row in enumerate(frame.to_dict("records")):
+        values = [_number(row.get(column)) for column in accuracy_columns(row)]
+        if all(math.isfinite(v) for v in values):
+            out[i] = max(values)
+    return out
+
+
 def shifted_geometric_mean(values: Any, shift: float = 0.0) -> float:
     """``exp(mean(log(v + shift))) - shift`` (NaN for no values)."""
     array = np.asarray(values, dtype=float)
@@ -113,22 +185,24 @@ def shifted_geometric_mean(values: Any, shift: float = 0.0) -> float:
     return float(np.exp(np.mean(np.log(array + shift))) - shift)
 
 
+def geometric_mean(values: Any) -> float:
+    """``exp(mean(log(max(v, LOG_FLOOR))))`` over the finite ``v`` (NaN when none is finite).
+
+    No floor at the tolerance: the accuracy columns show what the solvers returned.
+    """
+    array = np.asarray(values, dtype=float)
+    array = array[np.isfinite(array)]
+    if array.size == 0:
+        return float("nan")
+    return shifted_geometric_mean(np.maximum(array, LOG_FLOOR))
+
+
 def charged_times(frame: pd.DataFrame) -> np.ndarray:
-    """Solve times with failures charged at their time limit."""
-    times = frame["solve_time"].to_numpy(dtype=float)
+    """Ranked times with failures charged at their time limit (as qpbenchmark does)."""
+    times = ranked_time(frame)
     limits = frame["time_limit"].to_numpy(dtype=float)
     ok = frame["success"].to_numpy(dtype=bool) & np.isfinite(times)
     return np.where(ok, times, limits)
-
-
-def floored_sgm(values: Any, tolerance: Any) -> float:
-    """Geometric mean of ``max(v, eps)`` over finite ``v`` (NaN when none is finite)."""
-    values = np.asarray(values, dtype=float)
-    floor = np.broadcast_to(np.asarray(tolerance, dtype=float), values.shape)
-    finite = np.isfinite(values)
-    if not finite.any():
-        return float("nan")
-    return shifted_geometric_mean(np.maximum(values[finite], floor[finite]))
 
 
 def _median(values: Any) -> float:
@@ -137,51 +211,62 @@ def _median(values: Any) -> float:
     return float(np.median(array)) if array.size else float("nan")
 
 
+ACCURACY_MEANS: tuple[tuple[str, str], ...] = (
+    ("primal", "primal_residual_relative"), ("dual", "dual_residual_relative"),
+    ("gap", "duality_gap_relative"), ("complementarity", "complementarity_violation"),
+    ("cost_error", "cost_error"))
+"""(prefix, results column) of the geometric-mean accuracy aggregates."""
+RELATIVE_TO_BEST: tuple[str, ...] = ("time", "primal", "dual", "gap", "cost_error", "worst")
 AGGREGATE_COLUMNS: tuple[str, ...] = (
-    *GROUP_COLUMNS, "cells", "successes", "success_rate", "time_sgm", "time_rel", "build_sgm",
-    "primal_sgm", "primal_rel", "dual_sgm", "dual_rel", "gap_sgm", "gap_rel",
-    "complementarity_sgm", "cost_error_sgm", "cost_error_rel", "iterations_median",
-    "time_per_iteration", "cond_kkt_median", "cond_schur_raw_median",
-    "cond_schur_equilibrated_median",
+    *GROUP_COLUMNS, "cells", "successes", "success_rate", "tolerance", "time_limit",
+    "time_sgm", "time_rel", "build_sgm", "primal_sgm", "primal_rel", "dual_sgm", "dual_rel",
+    "gap_sgm", "gap_rel", "complementarity_sgm", "cost_error_sgm", "cost_error_rel",
+    "worst_sgm", "worst_rel", "iterations_median", "time_per_iteration", "cond_kkt_median",
+    "cond_schur_raw_median", "cond_schur_equilibrated_median",
 )
 
 
+def _group_record(group: pd.DataFrame) -> dict[str, Any]:
+    """The aggregates of one group (see the module doc), without the ``*_rel`` columns."""
+    success = group["success"].to_numpy(dtype=bool)
+    winners = group[success]
+    iterations = winners["iterations"].astype("float64").to_numpy()
+    per_iteration = winners["solve_time"].to_numpy(dtype=float) / np.where(
+        iterations > 0, iterations, np.nan)
+    record: dict[str, Any] = {
+        "cells": len(group),
+        "successes": int(success.sum()),
+        "success_rate": float(success.mean()),
+        "tolerance": float(group["tolerance"].max()),
+        "time_limit": float(group["time_limit"].max()),
+        "time_sgm": shifted_geometric_mean(charged_times(group), TIME_SHIFT),
+        "build_sgm": shifted_geometric_mean(
+            np.nan_to_num(group["build_time"].to_numpy(dtype=float)), TIME_SHIFT),
+        "worst_sgm": geometric_mean(worst_residual(group)),
+        "iterations_median": _median(iterations),
+        "time_per_iteration": _median(per_iteration),
+        "cond_kkt_median": _median(group["cond_kkt"]),
+        "cond_schur_raw_median": _median(group["cond_schur_raw"]),
+        "cond_schur_equilibrated_median": _median(group["cond_schur_equilibrated"]),
+    }
+    for prefix, column in ACCURACY_MEANS:
+        record[f"{prefix}_sgm"] = geometric_mean(group[column])
+    return record
+
+
 def aggregate(frame: pd.DataFrame) -> pd.DataFrame:
-    """One row per (family, settings, precision, start, solver) with the aggregates above.
+    """One row per (family, variant, settings, precision, start, solver) with the aggregates
+    above.
 
     Rows sorted by the group columns; ``*_rel`` columns divide by the smallest value among
-    the solvers of the same (family, settings, precision, start).
+    the solvers of the same (family, variant, settings, precision, start).
     """
-    records = []
-    for key, group in frame.groupby(list(GROUP_COLUMNS), sort=True):
-        tolerance = group["tolerance"].to_numpy(dtype=float)
-        success = group["success"].to_numpy(dtype=bool)
-        winners = group[success]
-        iterations = winners["iterations"].astype("float64").to_numpy()
-        per_iteration = winners["solve_time"].to_numpy(dtype=float) / np.where(
-            iterations > 0, iterations, np.nan)
-        records.append({
-            **dict(zip(GROUP_COLUMNS, key, strict=True)),
-            "cells": len(group),
-            "successes": int(success.sum()),
-            "success_rate": float(success.mean()),
-            "time_sgm": shifted_geometric_mean(charged_times(group), TIME_SHIFT),
-            "build_sgm": shifted_geometric_mean(
-                np.nan_to_num(group["build_time"].to_numpy(dtype=float)), TIME_SHIFT),
-            "primal_sgm": floored_sgm(group["primal_residual_relative"], tolerance),
-            "dual_sgm": floored_sgm(group["dual_residual_relative"], tolerance),
-            "gap_sgm": floored_sgm(group["duality_gap_relative"], tolerance),
-            "complementarity_sgm": floored_sgm(group["complementarity_violation"], tolerance),
-            "cost_error_sgm": floored_sgm(group["cost_error"], tolerance),
-            "iterations_median": _median(iterations),
-            "time_per_iteration": _median(per_iteration),
-            "cond_kkt_median": _median(group["cond_kkt"]),
-            "cond_schur_raw_median": _median(group["cond_schur_raw"]),
-            "cond_schur_equilibrated_median": _median(group["cond_schur_equilibrated"]),
-        })
+    frame = with_variants(frame)
+    records = [{**dict(zip(GROUP_COLUMNS, key, strict=True)), **_group_record(group)}
+               for key, group in frame.groupby(list(GROUP_COLUMNS), sort=True)]
     table = pd.DataFrame(records, columns=[c for c in AGGREGATE_COLUMNS if not c.endswith(
         "_rel")])
-    for name in ("time", "primal", "dual", "gap", "cost_error"):
+    for name in RELATIVE_TO_BEST:
         best = table.groupby(list(PEER_COLUMNS))[f"{name}_sgm"].transform("min") \
             if len(table) else table[f"{name}_sgm"]
         table[f"{name}_rel"] = table[f"{name}_sgm"] / best
@@ -191,12 +276,13 @@ def aggregate(frame: pd.DataFrame) -> pd.DataFrame:
 def performance_ratios(frame: pd.DataFrame) -> pd.DataFrame:
     """Dolan-More ratios ``r_{p,s} = t_{p,s} / min_s t_{p,s}`` (one peer group).
 
-    ``frame`` holds the rows of one (family, settings, precision, start); ``t`` is the solve
-    time of a successful cell and ``inf`` otherwise. Returns instances x solvers; a problem
-    no solver solved gets ``inf`` for all.
+    ``frame`` holds the rows of one (family, variant, settings, precision, start); ``t`` is
+    the ranked time (:func:`ranked_time`) of a successful cell and ``inf`` otherwise. Returns
+    instances x solvers; a problem no solver solved gets ``inf`` for all. (E. D. Dolan and
+    J. J. Moré, Mathematical Programming 91(2):201-213, 2002.)
     """
     times = frame.assign(t=np.where(frame["success"].to_numpy(dtype=bool),
-                                    frame["solve_time"].to_numpy(dtype=float), np.inf))
+                                    ranked_time(frame), np.inf))
     table = times.pivot_table(index="instance", columns="solver", values="t", aggfunc="min")
     table = table.fillna(np.inf)
     best = table.min(axis=1).replace(0.0, np.finfo(float).tiny)

@@ -2,9 +2,10 @@
 
 Layout (in the spirit of qpbenchmark's reports): header with the machine and versions; how
 success and the aggregates are defined; the solver table; the references; a success overview;
-one table per (family, settings, precision, start); failures; figures with one caption line
-each (or a note saying why a figure has no data). Tables are sorted and numbers formatted with
-fixed rules (:func:`fmt`) so the file diffs well between runs.
+one table per (family, variant, settings, precision, start); the cells whose solver claimed a
+wrong solution; the share of QP cells within the control budget; failures; figures with one
+caption line each (or a note saying why a figure has no data). Tables are sorted and numbers
+formatted with fixed rules (:func:`bench.tables.fmt`) so the file diffs well between runs.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import datetime as dt
 import json
 import math
 import re
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,10 +21,14 @@ import numpy as np
 import pandas as pd
 
 from c3bench.bench import store
+from c3bench.bench.budgets import budget_seconds
 from c3bench.bench.metrics import (
     DUAL_FAMILIES,
+    LOG_FLOOR,
     TIME_SHIFT,
     aggregate,
+    family_label,
+    ranked_time_label,
     required_residuals,
 )
 from c3bench.bench.perf import (
@@ -36,9 +40,15 @@ from c3bench.bench.perf import (
 )
 from c3bench.bench.plots import all_figures, ordered_settings
 from c3bench.bench.reference import REFERENCE_PLANS, load_references, summarise
+from c3bench.bench.report_accuracy import budget_section, claimed_wrong_section
+from c3bench.bench.tables import NOT_RUN, fmt, fmt_accuracy, markdown_table
 from c3bench.problems.names import Precision, Start
 
-# (header, aggregate column, format kind) of the per-family tables
+__all__ = ["build_report", "family_table", "fmt", "markdown_table", "perf_report_section",
+           "reason_kind", "write_report"]
+
+# (header, aggregate column, format kind) of the per-family tables; kind "acc" is an accuracy
+# mean shown in bold above the tolerance
 TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("solver", "solver", "text"),
     ("cells", "cells", "int"),
@@ -46,11 +56,12 @@ TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("time sgm (ms)", "time_sgm", "ms"),
     ("time rel.", "time_rel", "rel"),
     ("build sgm (ms)", "build_sgm", "ms"),
-    ("primal (rel.)", "primal_sgm", "sci"),
-    ("dual (rel.)", "dual_sgm", "sci"),
-    ("gap (rel.)", "gap_sgm", "sci"),
-    ("compl.", "complementarity_sgm", "sci"),
-    ("cost error", "cost_error_sgm", "sci"),
+    ("primal (rel.)", "primal_sgm", "acc"),
+    ("dual (rel.)", "dual_sgm", "acc"),
+    ("gap (rel.)", "gap_sgm", "acc"),
+    ("compl.", "complementarity_sgm", "acc"),
+    ("cost error", "cost_error_sgm", "acc"),
+    ("worst (rel.)", "worst_sgm", "acc"),
     ("iters (median)", "iterations_median", "num"),
     ("time/iter (us)", "time_per_iteration", "us"),
     ("cond(S) raw", "cond_schur_raw_median", "sci"),
@@ -58,49 +69,20 @@ TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def fmt(value: Any, kind: str) -> str:
-    """Deterministic cell text: ``-`` for missing values; fixed formats per kind."""
-    if kind == "text":
-        return str(value).replace("|", "\\|").replace("\n", " ")
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        return "-"
-    if math.isnan(number):
-        return "-"
-    if math.isinf(number):
-        return "inf" if number > 0 else "-inf"
-    if kind == "int":
-        return str(int(number))
-    if kind == "percent":
-        return f"{100.0 * number:.1f}%"
-    if kind == "ms":
-        return f"{1e3 * number:.3g}"
-    if kind == "us":
-        return f"{1e6 * number:.3g}"
-    if kind == "rel":
-        return f"{number:.2f}" if 0.01 <= abs(number) < 100 else f"{number:.3g}"
-    if kind == "num":
-        return f"{number:.4g}"
-    return f"{number:.1e}"
+def _cell(record: dict[str, Any], column: str, kind: str) -> str:
+    if kind == "acc":
+        return fmt_accuracy(record[column], float(record["tolerance"]))
+    return fmt(record[column], kind)
 
 
-def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]],
-                   align: str | None = None) -> str:
-    """A Markdown table; ``align`` has one letter per column, ``l`` or ``r`` (default: first
-    column left, the others right)."""
-    align = align or "l" + "r" * (len(headers) - 1)
-    marks = {"l": ":---", "r": "---:"}
-    lines = ["| " + " | ".join(headers) + " |",
-             "|" + "|".join(marks[a] for a in align) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines) + "\n"
-
-
-def family_table(summary: pd.DataFrame) -> str:
-    """The aggregate table of one (family, settings, precision, start) group."""
-    rows = [[fmt(record[column], kind) for _, column, kind in TABLE_COLUMNS]
+def family_table(summary: pd.DataFrame, not_run: list[str] | None = None) -> str:
+    """The aggregate table of one (family, variant, settings, precision, start) group, with
+    a *not run* row for each solver in ``not_run``."""
+    rows = [[_cell(record, column, kind) for _, column, kind in TABLE_COLUMNS]
             for record in summary.sort_values("solver").to_dict("records")]
+    blank = ["-"] * (len(TABLE_COLUMNS) - 2)
+    rows += [[fmt(solver, "text"), NOT_RUN, *blank] for solver in sorted(not_run or [])]
+    rows.sort(key=lambda row: row[0])
     return markdown_table([header for header, _, _ in TABLE_COLUMNS], rows)
 
 
@@ -131,6 +113,7 @@ def _method() -> str:
     dual = ", ".join(f"`{f}`" for f in DUAL_FAMILIES)
     families = sorted(set(REFERENCE_PLANS) | set(DUAL_FAMILIES))
     checks = "; ".join(f"`{f}`: " + ", ".join(required_residuals(f)) for f in families)
+    time = ranked_time_label()
     return (
         "A cell is one (instance, solver, settings, precision, start). **Success** = the "
         "solver found a solution *and* every residual its family requires is at most the "
@@ -140,15 +123,26 @@ def _method() -> str:
         "dual certificate); and, where a reference optimum f* exists, the cost error "
         "|f - f*| / max(1, |f*|) is at most max(tolerance, reference spread). The solver's "
         "own status is never enough.\n\n"
-        f"**Aggregates**: solve time is the shifted geometric mean exp(mean(log(t + s))) - s "
-        f"with shift s = {TIME_SHIFT:g} s ({TIME_SHIFT * 1e3:g} ms), failures counted at the "
-        "time limit; *time rel.* divides by the best solver of the same table. *Build* is "
-        "the conversion and setup before the solve (for Clarabel and OSQP it includes the "
-        "factorisation; a controller whose matrices change every step pays build + solve), "
-        "shifted geometric mean over all cells. Residual "
-        "columns are geometric means of max(residual, tolerance) over the cells where the "
-        "residual is finite (primal, dual, gap: relative). Iterations and time per iteration "
-        "are medians over successful cells; cond(S) columns are medians.\n"
+        f"**Ranked time**: every ranking (time columns, performance profiles, Pareto plots, "
+        f"budgets, `compare`) uses the {time}.\n\n"
+        f"**Aggregates**: time is the shifted geometric mean exp(mean(log(t + s))) - s of the "
+        f"{time} with shift s = {TIME_SHIFT:g} s ({TIME_SHIFT * 1e3:g} ms), failures counted "
+        "at the time limit (as qpbenchmark does); *time rel.* divides by the best solver of "
+        "the same table. *Build* is the conversion and setup before the solve (for Clarabel "
+        "and OSQP it includes the factorisation; a controller whose matrices change every "
+        "step pays build + solve), shifted geometric mean over all cells. Accuracy columns "
+        "(primal, dual, gap: relative; compl.; cost error) are plain geometric means "
+        "exp(mean(log(v))) of the **actual** values over the cells where they are finite, "
+        f"not floored at the tolerance; only exact zeros are raised to {LOG_FLOOR:g} to take "
+        "the logarithm (a column of zeros is shown as 0; a mean far below machine precision "
+        "means some cells were exactly zero). Values above the table's tolerance are in "
+        "**bold**. "
+        "*worst* is the same mean of each cell's largest required figure (the accuracy of "
+        "the accuracy profiles, Pareto plots and `compare`). Iterations and time per "
+        "iteration are medians over successful cells; cond(S) columns are medians.\n\n"
+        "**Variants**: projection instances belong to one ADMM variant (c3 or c3plus); "
+        "tables and figures split them, and a solver that takes one variant only is "
+        f"marked *{NOT_RUN}* on the other instead of failing there.\n"
     )
 
 
@@ -194,17 +188,18 @@ def _overview(summary: pd.DataFrame) -> str:
         return "No cold-start float64 cells.\n"
     profiles = ordered_settings(base)
     parts = []
-    for family in sorted(set(base["family"])):
+    for (family, variant), mine in base.groupby(["family", "variant"], sort=True):
+        solvers = set(base.loc[base["family"] == family, "solver"])
         rows = []
-        mine = base[base["family"] == family]
-        for solver in sorted(set(mine["solver"])):
+        for solver in sorted(solvers):
             row = [solver]
             for profile in profiles:
                 hit = mine[(mine["solver"] == solver) & (mine["settings"] == profile)]
-                row.append(fmt(hit["success_rate"].iloc[0], "percent") if len(hit) else "-")
+                row.append(fmt(hit["success_rate"].iloc[0], "percent") if len(hit)
+                           else NOT_RUN)
             rows.append(row)
-        parts.append(f"**{family}** (success rate, cold start, float64)\n\n"
-                     + markdown_table(["solver", *profiles], rows))
+        parts.append(f"**{family_label(str(family), str(variant))}** (success rate, cold "
+                     "start, float64)\n\n" + markdown_table(["solver", *profiles], rows))
     return "\n".join(parts)
 
 
@@ -244,9 +239,33 @@ def _failures(frame: pd.DataFrame) -> str:
               "results.\n")
 
 
+def _family_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> list[str]:
+    """One heading, caption and table per (family, variant, settings, precision, start)."""
+    out = []
+    keys = ["family", "settings", "precision", "start"]
+    for key, group in summary.groupby(["family", "variant", *keys[1:]], sort=True):
+        family, variant, profile, precision, start = (str(k) for k in key)
+        peers = summary
+        for column, value in zip(keys, (family, profile, precision, start), strict=True):
+            peers = peers[peers[column] == value]
+        cells = frame[(frame["family"] == family) & (frame["settings"] == profile)]
+        out.append(f"### {family_label(family, variant)} / {profile} / {precision} / "
+                   f"{start}\n")
+        out.append(f"Tolerance {group['tolerance'].max():.0e} (accuracy in **bold** above "
+                   f"it); residuals checked: {', '.join(required_residuals(family))}; time "
+                   f"limit {cells['time_limit'].max():g} s (a failed cell counts at it in "
+                   "the time columns, as qpbenchmark does).\n")
+        out.append(family_table(group, sorted(set(peers["solver"]) - set(group["solver"]))))
+    return out
+
+
 def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
-                 figures: bool = True) -> str:
-    """The report's Markdown text (draws the figures into ``paths.figures``)."""
+                 figures: bool = True, budget_ms: float | None = None) -> str:
+    """The report's Markdown text (draws the figures into ``paths.figures``).
+
+    ``budget_ms`` is the control budget of one QP solve in ms (default: control period /
+    ADMM iterations, :data:`bench.budgets.DEFAULT_BUDGET_S`).
+    """
     frame = store.read_results(paths.root) if frame is None else frame
     info = json.loads(paths.run_info.read_text()) if paths.run_info.exists() else {}
     summary = aggregate(frame)
@@ -262,29 +281,30 @@ def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
            "## Results by family and settings\n"]
     if summary.empty:
         out.append("No results.\n")
-    for (family, profile, precision, start), group in summary.groupby(
-            ["family", "settings", "precision", "start"], sort=True):
-        tolerance = frame.loc[(frame["family"] == family) & (frame["settings"] == profile),
-                              "tolerance"].iloc[0]
-        out.append(f"### {family} / {profile} / {precision} / {start}\n")
-        out.append(f"Tolerance {tolerance:.0e}; residuals checked: "
-                   f"{', '.join(required_residuals(family))}.\n")
-        out.append(family_table(group))
-    out += ["## Failures\n", _failures(frame)]
-    out.append("## Figures\n")
-    if figures:
-        for old in sorted(paths.figures.glob("*.png")) if paths.figures.is_dir() else []:
-            old.unlink()
-        for number, figure in enumerate(all_figures(frame, paths), start=1):
-            out.append(f"### Figure {number}: {figure.title}\n")
-            if figure.path is None:
-                out.append(f"*No figure: {figure.note}.*\n")
-            else:
-                out.append(f"![{figure.title}]({figure.path})\n")
-                out.append(f"*Figure {number}: {figure.caption}*\n")
+    out += _family_tables(frame, summary)
+    out += ["## Claimed success but wrong\n", claimed_wrong_section(frame),
+            "## Control budget\n", budget_section(frame, budget_seconds(budget_ms),
+                                                  explicit=budget_ms is not None),
+            "## Failures\n", _failures(frame)]
+    out += _figure_sections(frame, paths) if figures else ["## Figures\n"]
     out += _linked_sections(paths)
     out += ["## Results schema\n", store.schema_markdown()]
     return "\n".join(out)
+
+
+def _figure_sections(frame: pd.DataFrame, paths: store.SuitePaths) -> list[str]:
+    """Draw every figure (old PNGs removed first) and return its heading and caption."""
+    out = ["## Figures\n"]
+    for old in sorted(paths.figures.glob("*.png")) if paths.figures.is_dir() else []:
+        old.unlink()
+    for number, figure in enumerate(all_figures(frame, paths), start=1):
+        out.append(f"### Figure {number}: {figure.title}\n")
+        if figure.path is None:
+            out.append(f"*No figure: {figure.note}.*\n")
+        else:
+            out.append(f"![{figure.title}]({figure.path})\n")
+            out.append(f"*Figure {number}: {figure.caption}*\n")
+    return out
 
 
 def _linked_sections(paths: store.SuitePaths) -> list[str]:
@@ -304,12 +324,16 @@ def _linked_sections(paths: store.SuitePaths) -> list[str]:
     return out
 
 
-def write_report(suite: str, results_dir: str | Path = "results",
-                 figures: bool = True) -> Path:
-    """Write ``results/<suite>/report.md`` (+ figures and ``summary.csv``); return its path."""
+def write_report(suite: str, results_dir: str | Path = "results", figures: bool = True,
+                 budget_ms: float | None = None) -> Path:
+    """Write ``results/<suite>/report.md`` (+ figures and ``summary.csv``); return its path.
+
+    ``budget_ms``: the control budget of one QP solve in ms for the budget section (default
+    control period / ADMM iterations = 5 ms).
+    """
     paths = store.SuitePaths.of(results_dir, suite)
     frame = store.read_results(paths.root)
-    text = build_report(paths, frame, figures=figures)
+    text = build_report(paths, frame, figures=figures, budget_ms=budget_ms)
     store.atomic_write_bytes(paths.report, text.encode())
     store.atomic_write_bytes(paths.summary, aggregate(frame).to_csv(index=False).encode())
     return paths.report
@@ -347,19 +371,10 @@ def _perf_targets(summary: pd.DataFrame) -> list[str]:
     return checks
 
 
-def perf_report_section(results_dir: str | Path, figure_link: str | None = None) -> str:
-    """A Markdown section on the control-step time (reads ``<results_dir>/perf/``).
-
-    ``figure_link`` is the figure's path as the report should link it (default
-    ``perf/figures/perf_time_vs_samples.png``, right for a report in ``results_dir``; a
-    report in ``results/<suite>/`` passes ``../perf/figures/perf_time_vs_samples.png``).
-    """
-    try:
-        frame = store.read_perf(results_dir)
-    except FileNotFoundError as error:
-        return f"## Control-step time\n\n_No measurement: {error}._\n"
+def _perf_run_lines(frame: pd.DataFrame) -> list[str]:
+    """The description, table, skipped configurations and targets of one run."""
     summary = summarize(frame)
-    lines = ["## Control-step time", ""]
+    lines: list[str] = []
     if len(frame):
         first = frame.iloc[0]
         loads = frame["load_avg"].astype(float)
@@ -403,6 +418,32 @@ def perf_report_section(results_dir: str | Path, figure_link: str | None = None)
     checks = _perf_targets(summary)
     if checks:
         lines.extend(["Targets:", "", *checks, ""])
+    return lines
+
+
+def perf_report_section(results_dir: str | Path, figure_link: str | None = None) -> str:
+    """A Markdown section on the control-step time (reads ``<results_dir>/perf/``): the
+    latest run of each machine, one table per machine.
+
+    ``figure_link`` is the figure's path as the report should link it (default
+    ``perf/figures/perf_time_vs_samples.png``, right for a report in ``results_dir``; a
+    report in ``results/<suite>/`` passes ``../perf/figures/perf_time_vs_samples.png``).
+    """
+    try:
+        stored = store.read_perf(results_dir)
+    except FileNotFoundError as error:
+        return f"## Control-step time\n\n_No measurement: {error}._\n"
+    frame = store.latest_perf_runs(stored)
+    lines = ["## Control-step time", ""]
+    earlier = stored["run_id"].nunique() - frame["run_id"].nunique()
+    if earlier:
+        lines += [f"The latest run of each machine; {earlier} earlier run(s) are kept in "
+                  f"`{store.PERF_DIR}/{store.PERF_RUNS}/` and `{store.PERF_DIR}/perf.csv`.", ""]
+    hosts = list(dict.fromkeys(frame["host"].astype(str)))
+    for host in hosts:
+        if len(hosts) > 1:
+            lines += [f"### {host}", ""]
+        lines += _perf_run_lines(frame[frame["host"].astype(str) == host])
     link = figure_link or f"{store.PERF_DIR}/figures/{PERF_FIGURE}"
     lines.append(f"![control-step time vs samples]({link})")
     lines.append("")
