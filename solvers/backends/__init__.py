@@ -24,6 +24,8 @@ shared helpers and are not imported by the discovery:
 ``ipopt_mpcc``           ``ipopt_scholtes`` (Scholtes 2001), ``ipopt_penalty`` (Hu and
                          Ralph 2004), IPOPT (Wächter and Biegler 2006) through CasADi
 ``c3_admm``              ``c3plus_admm``, ``c3_admm``: the controller as an ``mpcc`` solver
+``cvxpy_backend``        ``cvxpy_clarabel``, ``cvxpy_osqp``, ``cvxpy_scip``: through a CVXPY
+                         problem compiled once per shape (Diamond and Boyd 2016)
 ``_qp_forms``            helpers of the convex QP adapters (two-sided and cone forms)
 ``_miqp``                helpers of the MIQP adapters (polishing, the final check)
 =======================  ===================================================================
