@@ -1,4 +1,10 @@
-"""``c3bench problems generate`` / ``problems list``: the instance commands (:mod:`bench.cli`).
+"""``c3bench problems generate`` / ``list`` / ``import`` / ``export``: the instance commands
+(:mod:`bench.cli`).
+
+``import`` turns the user's own convex QPs (qpsolvers' ``.npz`` files, or a module yielding
+``qpsolvers.Problem`` objects) into a directory of ``qp`` instances with a manifest
+(:mod:`c3bench.problems.importers`); ``export`` writes instances in qpsolvers' format
+(:mod:`c3bench.problems.exporters`).
 
 Also the instance helpers other commands share: :func:`capture_for` (the ADMM-iterate source
 of a generation), :func:`read_instance_dir` (a directory's instances under the ``--skip-bad``
@@ -8,6 +14,7 @@ policy) and :func:`add_skip_bad`.
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -104,12 +111,94 @@ def cmd_problems_list(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_problems_import(args: argparse.Namespace) -> int:
+    """Import the user's QPs into ``--out`` as ``qp`` instances and print their table."""
+    from c3bench.problems.importers import read_module, read_npz_source, write_imported
+    from c3bench.problems.suites import check_target, staging_dir, swap_in
+
+    if (args.source is None) == (args.module is None):
+        raise InputError("give either SRC (an .npz file or a directory of them) or "
+                         "--module MODULE, not both and not neither")
+    cli_checks.check_output_path("--out", args.out)
+    out = Path(args.out)
+    try:
+        check_target(out)
+    except InputError as error:
+        raise InputError(f"--out: {error}") from error
+    if args.module is not None:
+        problems, source = read_module(args.module), f"module {args.module}"
+    else:
+        problems, source = read_npz_source(Path(args.source)), str(args.source)
+    staging = staging_dir(out)
+    try:
+        write_imported(problems, staging, source, name=out.name)
+        swap_in(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    print(f"imported {len(problems)} instances to {out}")
+    print(instance_table(out).to_string(index=False))
+    return EXIT_OK
+
+
+def cmd_problems_export(args: argparse.Namespace) -> int:
+    """Write the instances of ``DIR`` in another tool's format (qpsolvers)."""
+    from c3bench.problems.exporters import export_qpsolvers
+
+    directory = Path(args.directory)
+    if not directory.is_dir():
+        raise InputError(f"DIR: {directory} is not a directory")
+    cli_checks.check_output_path("--out", args.out)
+    problems = read_instance_dir(directory, args.skip_bad)
+    if not problems:
+        raise InputError(f"DIR: no instances under {directory}")
+    export = export_qpsolvers(problems, Path(args.out))
+    for name, reason in sorted(export.skipped.items()):
+        print(f"left out {name}: {reason}", file=sys.stderr)
+    print(f"exported {len(export.written)} instances to {args.out} (qpsolvers.Problem.load "
+          f"reads each .npz; {export.index.name} lists them with their objective offsets)")
+    return EXIT_OK if export.written else EXIT_ERROR
+
+
+def _add_import_export(problems_sub: Any) -> None:
+    """``problems import`` and ``problems export``."""
+    from c3bench.problems.exporters import FORMATS
+
+    imports = problems_sub.add_parser(
+        "import", help="bring your own convex QPs (qpsolvers' form) as qp instances",
+        description="Read .npz files with qpsolvers' Problem keys (P q G h A b lb ub), or a "
+                    "module whose functions or classes yield qpsolvers.Problem objects, and "
+                    "write them as instances of the qp family (with a manifest) that "
+                    "`c3bench run --instances DIR` runs.")
+    imports.add_argument("source", nargs="?", default=None, metavar="SRC",
+                         help="an .npz file or a directory of them (searched recursively)")
+    imports.add_argument("--module", default=None, metavar="MODULE",
+                         help="instead of SRC: an importable Python module defining a "
+                              "function or class yielding qpsolvers.Problem objects")
+    imports.add_argument("--out", required=True, metavar="DIR",
+                         help="instance directory to write (new, empty, or one written by "
+                              "import or generate, which is replaced as a whole)")
+    imports.set_defaults(handler=cmd_problems_import)
+    export = problems_sub.add_parser(
+        "export", help="write instances for other tools (qpsolvers.Problem.load)",
+        description="Write each instance without complementarity pairs as OUT/<name>.npz in "
+                    "qpsolvers' Problem.save layout, and OUT/index.json with each one's "
+                    "objective offset.")
+    export.add_argument("directory", metavar="DIR", help="directory holding instances")
+    export.add_argument("--out", required=True, metavar="OUT", help="directory to write")
+    export.add_argument("--format", choices=FORMATS, default=FORMATS[0],
+                        help=f"output format (default: {FORMATS[0]})")
+    add_skip_bad(export)
+    export.set_defaults(handler=cmd_problems_export)
+
+
 def add_problems(sub: Any) -> None:
-    """``problems generate`` and ``problems list``."""
-    problems = sub.add_parser("problems", help="generate and list subproblem instances",
-                              description="Generate a suite's instances, or list instances.")
+    """``problems generate``, ``list``, ``import`` and ``export``."""
+    problems = sub.add_parser("problems", help="generate, list, import and export instances",
+                              description="Generate a suite's instances, list instances, "
+                                          "import your own QPs or export instances.")
     problems_sub = problems.add_subparsers(dest="problems_command", required=True,
-                                           metavar="{generate,list}",
+                                           metavar="{generate,list,import,export}",
                                            help="what to do with instances")
     generate = problems_sub.add_parser("generate", help="write a suite's instances",
                                        description="Write a suite's instances to a directory.")
@@ -131,6 +220,7 @@ def add_problems(sub: Any) -> None:
     listing.add_argument("directory", metavar="DIR", help="directory holding instances")
     add_skip_bad(listing)
     listing.set_defaults(handler=cmd_problems_list)
+    _add_import_export(problems_sub)
 
 
 def add_skip_bad(parser: argparse.ArgumentParser) -> None:

@@ -35,13 +35,15 @@ import numpy as np
 
 from c3bench.problems.errors import InstanceFormatError
 from c3bench.problems.lcs import LCS, LCS_MATRICES
-from c3bench.problems.names import Family
+from c3bench.problems.names import GENERIC_FAMILIES, Family
 
 SCHEMA_VERSION = 1
 FAMILIES: tuple[str, ...] = tuple(Family)
 """Family names in their canonical order (:class:`c3bench.problems.names.Family`)."""
 QP_FIELDS: tuple[str, ...] = ("P", "q", "A", "b", "G", "h", "lb", "ub")
 REQUIRED_META: tuple[str, ...] = ("scene", "l", "dt", "T", "seed", "precision")
+"""Metadata describing the cube scene: required of the cube families only (the generic
+families, :data:`~c3bench.problems.names.GENERIC_FAMILIES`, load without it)."""
 
 
 @dataclass
@@ -368,7 +370,7 @@ def load_problem(path: str | Path) -> Problem:
     meta = _require(header, "meta", json_path)
     if not isinstance(meta, dict) or not isinstance(keys, list):
         raise InstanceFormatError(f"{json_path}: 'meta' must be an object and 'arrays' a list")
-    for key in REQUIRED_META:
+    for key in required_meta(str(header["family"]), "lcs" in header):
         if key not in meta:
             raise InstanceFormatError(f"{json_path}: missing key 'meta.{key}'")
     arrays = _read_arrays(npz_path)
@@ -381,6 +383,13 @@ def load_problem(path: str | Path) -> Problem:
         if isinstance(error, InstanceFormatError):
             raise
         raise InstanceFormatError(f"{json_path}: {error}") from error
+
+
+def required_meta(family: str, has_lcs: bool) -> tuple[str, ...]:
+    """The metadata keys an instance must carry: :data:`REQUIRED_META` where it describes the
+    cube (every instance with an LCS table, and every instance of a cube-only family), none
+    for an instance of a generic family (``qp``, ``mpcc``, ``lcp``) brought without an LCS."""
+    return () if family in GENERIC_FAMILIES and not has_lcs else REQUIRED_META
 
 
 def _build_problem(header: dict[str, Any], arrays: dict[str, np.ndarray], json_path: Path,

@@ -30,10 +30,19 @@ class Family(StrEnum):
     """The whole-horizon MPC with complementarity constraints."""
     LCP = "lcp"
     """Forward-simulation LCP ``0 <= lam perp F lam + q >= 0`` with symmetric PSD ``F``."""
+    QP = "qp"
+    """A generic convex QP in qpsolvers' form (``P q G h A b lb ub``), brought by the user
+    (``c3bench problems import``); no cube metadata."""
 
 
-QP_FAMILIES: Final = (Family.C3PLUS_QP, Family.C3_QP, Family.LCP)
-"""Families a convex QP solver can take."""
+SUITE_FAMILIES: Final = (Family.C3PLUS_QP, Family.C3_QP, Family.PROJECTION, Family.MPCC,
+                         Family.LCP)
+"""Families the cube-tipping suites generate (``problems generate``)."""
+GENERIC_FAMILIES: Final = (Family.QP, Family.MPCC, Family.LCP)
+"""Families whose instances need no cube metadata (an imported problem may belong to them)."""
+QP_FAMILIES: Final = (Family.C3PLUS_QP, Family.C3_QP, Family.LCP, Family.QP)
+"""Families a convex QP solver can take (every convex QP backend handles equality and
+inequality rows and bounds, so each takes the generic ``qp`` family too)."""
 EQUALITY_QP_FAMILIES: Final = (Family.C3PLUS_QP, Family.C3_QP)
 """Families whose instances are equality-constrained QPs (the KKT-family backends)."""
 COMPLEMENTARITY_FAMILIES: Final = (Family.PROJECTION, Family.MPCC)

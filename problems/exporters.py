@@ -1,0 +1,94 @@
+"""Export instances for other tools: ``qpsolvers.Problem.load`` reads every exported file.
+
+``c3bench problems export DIR --out OUT --format qpsolvers`` writes one ``OUT/<name>.npz``
+per instance without complementarity pairs (the families of
+:data:`~c3bench.problems.names.QP_FAMILIES`), in exactly the layout of
+``qpsolvers.Problem.save`` (qpsolvers 4): the eight keys ``P q G h A b lb ub``, an absent
+block stored as ``None`` (an object array, which ``Problem.load`` reads back as ``None``).
+The problem is ``min 1/2 x^T P x + q^T x`` s.t. ``G x <= h``, ``A x = b``, ``lb <= x <= ub``:
+our instances' objective minus its constant ``objective_offset``.
+
+``OUT/index.json`` lists each exported instance (name, family, file, ``objective_offset``,
+so that ``f = 1/2 x^T P x + q^T x + objective_offset`` is our objective) and the instances
+left out with the reason (complementarity pairs have no place in qpsolvers' form).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from c3bench.problems.instance import Problem, atomic_write_bytes
+from c3bench.problems.names import QP_FAMILIES
+
+FORMATS: tuple[str, ...] = ("qpsolvers",)
+"""Export formats."""
+INDEX = "index.json"
+"""The export's table of contents (beside the ``.npz`` files)."""
+
+
+@dataclass
+class Export:
+    """What an export wrote.
+
+    Attributes
+    ----------
+    written
+        The ``.npz`` paths, one per exported instance.
+    skipped
+        ``name -> reason`` of the instances left out.
+    index
+        The path of ``index.json``.
+    """
+
+    written: list[Path] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)
+    index: Path = Path(INDEX)
+
+
+def qpsolvers_arrays(problem: Problem) -> dict[str, Any]:
+    """The arrays ``qpsolvers.Problem.save`` writes for ``problem`` (``None`` blocks kept)."""
+    return {"P": problem.P, "q": problem.q, "G": problem.G, "h": problem.h,
+            "A": problem.A, "b": problem.b, "lb": problem.lb, "ub": problem.ub}
+
+
+def qpsolvers_npz(problem: Problem) -> bytes:
+    """``problem`` as the bytes of a qpsolvers ``.npz`` (the layout of ``Problem.save``)."""
+    buffer = io.BytesIO()
+    a = {key: np.array(value) for key, value in qpsolvers_arrays(problem).items()}
+    np.savez(buffer, P=a["P"], q=a["q"], G=a["G"], h=a["h"], A=a["A"], b=a["b"], lb=a["lb"],
+             ub=a["ub"])
+    return buffer.getvalue()
+
+
+def exportable(problem: Problem) -> str:
+    """Why ``problem`` cannot be written in qpsolvers' form, ``""`` when it can."""
+    if problem.family not in QP_FAMILIES or problem.n_pairs:
+        return (f"family {problem.family!r} has complementarity pairs, which qpsolvers' "
+                "form cannot hold")
+    return ""
+
+
+def export_qpsolvers(problems: list[Problem], out: Path) -> Export:
+    """Write ``problems`` (those :func:`exportable`) into ``out`` (see the module docstring)."""
+    result = Export(index=out / INDEX)
+    entries: list[dict[str, Any]] = []
+    for problem in problems:
+        reason = exportable(problem)
+        if reason:
+            result.skipped[problem.name] = reason
+            continue
+        path = out / f"{problem.name}.npz"
+        atomic_write_bytes(path, qpsolvers_npz(problem))
+        result.written.append(path)
+        entries.append({"name": problem.name, "family": str(problem.family),
+                        "file": path.name, "objective_offset": problem.objective_offset})
+    index = {"format": "qpsolvers", "instances": entries, "skipped": result.skipped}
+    atomic_write_bytes(result.index,
+                       (json.dumps(index, indent=2, sort_keys=True) + "\n").encode())
+    return result
