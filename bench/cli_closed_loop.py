@@ -1,10 +1,11 @@
-"""Handlers of ``c3bench closed-loop``, ``closed-loop-suite`` and ``sweep``.
+"""Handlers of ``c3bench closed-loop``, ``closed-loop-trials``, ``closed-loop-suite`` and
+``sweep``.
 
 The parser of every command is built in one place, :func:`bench.cli.build_parser`; each
 handler here takes the parsed namespace and returns an exit code (:mod:`bench.cli`). Every
 command writes under the results root ``--results ROOT`` (:func:`bench.store.closed_loop_dir`):
-``ROOT/closed_loop/runs/<controller>/`` (one run), ``ROOT/closed_loop/<suite>/`` and
-``ROOT/closed_loop/sweep/``.
+``ROOT/closed_loop/runs/<controller>/`` (one run), ``ROOT/closed_loop/trials/<controller>/``
+(randomized trials), ``ROOT/closed_loop/<suite>/`` and ``ROOT/closed_loop/sweep/``.
 
 Every option is checked before anything is simulated (:mod:`bench.closed_loop_checks`): the
 backends exist, are available and take the controller's QP family, durations are whole
@@ -41,6 +42,32 @@ def _missing(run: Any) -> int:
     return EXIT_ERROR
 
 
+def metric_lines(metrics: Any) -> list[str]:
+    """The physical metrics of one run (:class:`bench.closed_loop_metrics.PhysicalMetrics`),
+    as printed by ``c3bench closed-loop``."""
+    return [
+        f"gentle success    {'yes' if metrics.gentle_success else 'no'} (peak angle "
+        f"{metrics.peak_angle:.3f} rad, balance angle {metrics.balance_angle:.3f} rad"
+        f"{', passed' if metrics.passed_balance else ''})",
+        f"hold time         {metrics.hold_time:.2f} s in the band at the end (settled "
+        + ("never" if metrics.settling_time != metrics.settling_time
+           else f"at {metrics.settling_time:.2f} s")
+        + f"), steady offset {metrics.steady_offset:+.3f} rad",
+        f"contact           first touch {metrics.first_touch_time:.2f} s at "
+        f"{metrics.impact_speed:.2f} m/s; {metrics.contact_time:.2f} s in contact, "
+        f"{metrics.free_time:.2f} s out",
+        f"penetration       cube {1e3 * metrics.max_cube_penetration:.1f} mm, table "
+        f"{1e3 * metrics.max_table_penetration:.1f} mm; clipped inputs "
+        f"{metrics.clipped_inputs} steps",
+        f"plan vs LCS       angle median {metrics.plan_lcs_angle_median:.4f} rad, max "
+        f"{metrics.plan_lcs_angle_max:.4f} rad (state norm median "
+        f"{metrics.plan_lcs_error_median:.3g})",
+        f"plan vs plant     angle median {metrics.plan_plant_angle_median:.4f} rad, max "
+        f"{metrics.plan_plant_angle_max:.4f} rad (state norm median "
+        f"{metrics.plan_plant_error_median:.3g})",
+    ]
+
+
 def cmd_closed_loop(args: argparse.Namespace) -> int:
     """Drive the MuJoCo cube with one controller and write the run's records."""
     from c3bench.bench.closed_loop import (
@@ -72,8 +99,12 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
     write_run(out, trajectory, records, scene, run_summary(spec, trajectory, outcome))
     print(f"controller        {spec.label()}")
     print(f"success           {'yes' if outcome.success else 'no'}")
+    if outcome.metrics is not None:
+        for line in metric_lines(outcome.metrics):
+            print(line)
     print(f"angle error       {outcome.angle_error:.4f} rad at t = {args.duration:g} s "
           f"(theta = {outcome.final_angle:.4f}, target {config.mpc.target_angle:g})")
+    print(f"what happened     {outcome.label}: {outcome.label_reason}")
     print(f"failure mode      {outcome.failure_mode} ({outcome.failure_label}): "
           f"{outcome.failure_reason}")
     print(f"control step      median {1e3 * outcome.median_step_time:.1f} ms, "
@@ -129,4 +160,38 @@ def cmd_sweep(args: argparse.Namespace) -> int:
                     rerun=args.rerun, progress=not args.quiet)
     report = write_report(run, "hyperparameter sweep", render=False)
     print(f"{len(run.rows)} runs ({run.skipped} stored); report: {report}")
+    return _missing(run)
+
+
+def cmd_closed_loop_trials(args: argparse.Namespace) -> int:
+    """Run randomized trials of one controller (resumable) and print their statistics."""
+    from c3bench.bench.closed_loop import ControllerSpec
+    from c3bench.bench.closed_loop_metrics import SuccessRules
+    from c3bench.bench.closed_loop_suite import run_cases
+    from c3bench.bench.trials import summary_lines, trial_cases
+    from c3bench.problems.config import load_config
+    from c3bench.problems.instance import atomic_write_bytes
+
+    spec = ControllerSpec(controller=args.controller, qp_backend=args.qp_backend,
+                          model_l=args.model_l, samples=args.samples,
+                          feedback=args.feedback)
+    config = load_config()
+    control_steps(args.duration, config.mpc.dt, "--duration")
+    rules = SuccessRules(hold_time=args.hold_time)
+    check_backends(spec)
+    directory = writable_directory(store.closed_loop_dir(args.results, "trials") / spec.label(),
+                                   "--results")
+    cases = trial_cases(spec, args.trials, args.seed, args.duration, rules.hold_time)
+    run = run_cases(cases, directory, jobs=args.jobs, scheduler=args.scheduler,
+                    rerun=args.rerun, progress=not args.quiet)
+    print(f"controller      {spec.label()}")
+    print(f"trials          {args.trials} (seed {args.seed}, {args.duration:g} s each, hold "
+          f"{rules.hold_time:g} s; {run.skipped} stored)")
+    if args.duration < rules.min_duration:
+        print(f"note            runs shorter than {rules.min_duration:g} s cannot succeed")
+    lines = summary_lines(run.rows, args.trials)
+    for line in lines:
+        print(line)
+    atomic_write_bytes(directory / "summary.txt", ("\n".join(lines) + "\n").encode())
+    print(f"records         {directory} (summary.txt, results.parquet, cells/)")
     return _missing(run)

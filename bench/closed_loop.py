@@ -1,14 +1,17 @@
 """Closed loop: a controller replans every ``dt`` from the measured MuJoCo state and drives the
 true plant (``l = 0.30``) with its first input held for ``dt`` (zero-order hold).
 
-Outcome metrics (docs/closed_loop.md): cube angle error at the end, success, control-step wall
-time (median, p95; LCS build and solve apart), NaN / fallback counts, and an automatic
+Outcome metrics (docs/closed_loop.md): cube angle error at the end, control-step wall
+time (median, p95; LCS build and solve apart), NaN / fallback counts, the physical metrics and
+the success rule built on them (:mod:`bench.closed_loop_metrics`: peak angle, contact times,
+impact speed, hold time, penetration, clipped inputs, plan consistency), and an automatic
 failure-mode label computed from the trajectory by :func:`label_failure_mode`.
 
 Failure-mode rules (thresholds in :class:`FailureRules`), checked in this order:
 
-0. **success**: ``|theta(T_end) - theta*| <= success_tolerance`` and the pivot (far bottom
-   corner) moved less than ``pivot_slip`` in x.
+0. **success** (the older end-time rule, kept as a label; ``success`` itself is the physical
+   metrics' rule): ``|theta(T_end) - theta*| <= success_tolerance`` and the pivot (far
+   bottom corner) moved less than ``pivot_slip`` in x.
 4. **no motion**: ``max |theta| < still_angle`` and the cube centre moved less than
    ``still_shift``.
 2. **backing off**: before the cube first tips past ``tip_start``, the ball retreats by more than
@@ -36,6 +39,13 @@ import mujoco
 import numpy as np
 
 from c3bench.bench.closed_loop_checks import check_backends, control_steps
+from c3bench.bench.closed_loop_labels import physical_label
+from c3bench.bench.closed_loop_metrics import (
+    PhysicalMetrics,
+    RunSignals,
+    SuccessRules,
+    physical_metrics,
+)
 from c3bench.bench.closed_loop_policy import (
     CONTROLLERS,
     FAST_CONTROLLERS,
@@ -55,10 +65,11 @@ from c3bench.solvers.timing import single_thread_blas
 
 __all__ = [
     "CONTROLLERS", "FAILURE_MODES", "FAST_CONTROLLERS", "ROBUST_CONTROLLERS",
-    "ClosedLoopOutcome", "ControllerSpec", "FailureRules", "Policy", "StepRecord", "Trajectory",
-    "cube_geometry", "label_failure_mode", "make_policy", "pd_tracking_law",
-    "planned_ball_state", "records_frame", "render_run", "run_closed_loop", "run_summary",
-    "simulate", "step_backends", "step_failures", "summarise", "write_run",
+    "ClosedLoopOutcome", "ControllerSpec", "FailureRules", "PhysicalMetrics", "Policy",
+    "StepRecord", "SuccessRules", "Trajectory", "cube_geometry", "label_failure_mode",
+    "make_policy", "pd_tracking_law", "planned_ball_state", "records_frame", "render_run",
+    "run_closed_loop", "run_signals", "run_summary", "simulate", "step_backends",
+    "step_failures", "summarise", "write_run",
 ]
 
 FAILURE_MODES: dict[int, str] = {
@@ -164,7 +175,10 @@ class StepRecord:
     projection whose backend raised, rejected the instance, overran the per-step time limit or
     returned no or a non-finite answer; the ADMM stops at the first, so 0 or 1), with
     ``qp_failure`` the first one's reason; ``fallback_reason`` says why the last safe input
-    was held (``""`` when ``ok``).
+    was held (``""`` when ``ok``). ``commanded`` is the controller's input before any clip
+    (its unclipped ``u_0``); ``plan_next``, ``lcs_next`` and ``plan_input`` are the plan's
+    ``x_1``, the LCS rollout of its ``u_0`` and that ``u_0`` (``None`` without a plan;
+    :mod:`bench.closed_loop_metrics`).
     """
 
     time: float
@@ -178,6 +192,10 @@ class StepRecord:
     qp_failures: int = 0
     qp_failure: str = ""
     fallback_reason: str = ""
+    commanded: np.ndarray | None = None
+    plan_next: np.ndarray | None = None
+    lcs_next: np.ndarray | None = None
+    plan_input: np.ndarray | None = None
 
 
 @dataclass
@@ -198,10 +216,22 @@ class ClosedLoopOutcome:
     steps: int
     qp_failure_steps: int = 0
     qp_failure: str = ""
+    metrics: PhysicalMetrics | None = None
+    label: str = ""
+    label_reason: str = ""
 
     @property
     def failure_label(self) -> str:
         return FAILURE_MODES[self.failure_mode]
+
+    def row(self) -> dict[str, Any]:
+        """The outcome as one flat row: its fields and the physical metrics'."""
+        from dataclasses import asdict, fields
+
+        row = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "metrics"}
+        if self.metrics is not None:
+            row.update(asdict(self.metrics))
+        return row
 
 
 def _bind_input(law: Callable[[np.ndarray, float, np.ndarray], np.ndarray], u: np.ndarray
@@ -212,6 +242,15 @@ def _bind_input(law: Callable[[np.ndarray, float, np.ndarray], np.ndarray], u: n
         return law(x, s, u)
 
     return control
+
+
+def _plan_fields(info: dict[str, Any], ok: bool) -> dict[str, np.ndarray | None]:
+    """The plan arrays of a policy's ``info`` (``None`` when missing or the step failed)."""
+    out: dict[str, np.ndarray | None] = {}
+    for key in ("plan_next", "lcs_next", "plan_input"):
+        value = info.get(key)
+        out[key] = np.array(value, dtype=float) if ok and value is not None else None
+    return out
 
 
 def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0,
@@ -252,6 +291,7 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
         nan_count = int(info.get("nan_count", 0))
         ok = bool(info.get("ok", True))
         reason = str(info.get("fallback_reason", "")) if not ok else ""
+        commanded = np.asarray(info.get("commanded", u), dtype=float)
         if u.shape != (scene.nu,) or not np.all(np.isfinite(u)):
             nan_count += 1
             ok = False
@@ -271,7 +311,10 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
                                   nan_count, scalars,
                                   qp_failures=int(info.get("qp_failures", 0)),
                                   qp_failure=str(info.get("qp_failure", "")),
-                                  fallback_reason=reason))
+                                  fallback_reason=reason,
+                                  commanded=commanded.copy()
+                                  if ok and commanded.shape == u.shape else None,
+                                  **_plan_fields(info, ok)))
         law = info.get("control_law") if ok else None
         state = plant.step_with(_bind_input(law, u), dt) if law else plant.step(u, dt)
         states.append(state)
@@ -285,16 +328,51 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
     return trajectory, records
 
 
+def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene
+                ) -> RunSignals:
+    """The per-state signals of a run that :func:`physical_metrics` needs."""
+    states = trajectory.states
+    ball = scene.ball_position_indices
+    velocity = states[:, scene.nq + ball - (scene.nq - scene.nv)]
+    nx = scene.nx
+
+    def stacked(name: str, width: int) -> np.ndarray:
+        rows = [getattr(r, name) for r in records]
+        return np.array([np.full(width, np.nan) if v is None else v for v in rows]
+                        ).reshape(len(records), width)
+
+    commanded = np.array([r.input if r.commanded is None else r.commanded for r in records]
+                         ).reshape(len(records), scene.nu)
+    geometry = [cube_geometry(scene, x) for x in states]
+    return RunSignals(
+        times=trajectory.times,
+        angles=np.array([scene.cube_angle(x) for x in states]),
+        ball_gap=trajectory.ball_gap,
+        ball_height=states[:, ball[-1]] - scene.config.scene.ball_radius
+        - scene.config.scene.table_height,
+        ball_speed=np.linalg.norm(velocity, axis=1),
+        commanded=commanded, force_limit=scene.config.scene.force_limit,
+        cube_side=scene.l, plan_next=stacked("plan_next", nx),
+        lcs_next=stacked("lcs_next", nx), states=states,
+        angle_index=2,  # planar: theta is x[2]
+        ball_above_top=np.array([g["ball_local"][2] > scene.l / 2 for g in geometry]),
+        pivot_x=np.array([g["far_corner"][0] for g in geometry]))
+
+
 def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
-              config: Config) -> ClosedLoopOutcome:
-    """Outcome metrics of a run (see the module docstring)."""
+              config: Config, rules: SuccessRules | None = None) -> ClosedLoopOutcome:
+    """Outcome metrics of a run (see the module docstring): ``success`` is the physical
+    metrics' (:mod:`bench.closed_loop_metrics`, under ``rules``)."""
     target = config.mpc.target_angle
     mode, reason = label_failure_mode(trajectory, scene, target, config.mpc.success_tolerance)
+    signals = run_signals(trajectory, records, scene)
+    metrics = physical_metrics(signals, target, config.mpc.success_tolerance, rules)
+    label, label_reason = physical_label(metrics, signals, target)
     final = scene.cube_angle(trajectory.states[-1])
     walls = np.array([r.info.get("wall_time", r.lcs_time + r.solve_time) for r in records])
     failed = [r for r in records if r.qp_failures]
     return ClosedLoopOutcome(
-        success=mode == 0,
+        success=metrics.success,
         angle_error=abs(final - target),
         final_angle=final,
         failure_mode=mode,
@@ -308,28 +386,37 @@ def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
         steps=len(records),
         qp_failure_steps=len(failed),
         qp_failure=failed[0].qp_failure if failed else "",
+        metrics=metrics,
+        label=label,
+        label_reason=label_reason,
     )
 
 
 def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
                     duration: float = 2.0, progress: bool = False,
-                    x0: np.ndarray | None = None
+                    x0: np.ndarray | None = None, plant_config: Config | None = None,
+                    rules: SuccessRules | None = None
                     ) -> tuple[Trajectory, list[StepRecord], ClosedLoopOutcome]:
     """Drive the true plant with the controller of ``spec`` for ``duration`` seconds.
 
     ``x0`` is the plant's initial state (default: :func:`problems.scene.home_state`). The
     backends and the duration are checked first (:class:`InputError`), and each QP solve
-    runs under ``spec.qp_time_limit`` (:func:`step_backends`).
+    runs under ``spec.qp_time_limit`` (:func:`step_backends`). ``config`` is the controller's
+    (its model, MPC and control period); ``plant_config`` the plant's (default: the same),
+    e.g. a randomized trial's cube side, mass and friction. ``rules``: the success rule.
     """
     cfg = config or load_config()
     steps = control_steps(duration, cfg.mpc.dt)
     check_backends(spec)
-    plant_scene = build_scene(config=cfg)
+    plant_cfg = plant_config or cfg
+    if plant_cfg.mpc != cfg.mpc:
+        plant_cfg = Config(scene=plant_cfg.scene, mpc=cfg.mpc)
+    plant_scene = build_scene(config=plant_cfg)
     with step_backends(spec) as backends:
         policy = make_policy(spec, cfg, backends)
         trajectory, records = _simulate_with_progress(spec, policy, cfg, duration, steps,
                                                       plant_scene, progress, x0)
-    return trajectory, records, summarise(trajectory, records, plant_scene, cfg)
+    return trajectory, records, summarise(trajectory, records, plant_scene, cfg, rules)
 
 
 def _simulate_with_progress(spec: ControllerSpec, policy: Policy, cfg: Config,
@@ -373,6 +460,12 @@ def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scen
                                "fallback_reason": record.fallback_reason}
         row.update({f"x{i}": float(v) for i, v in enumerate(record.state)})
         row.update({f"u{i}": float(v) for i, v in enumerate(record.input)})
+        commanded = record.input if record.commanded is None else record.commanded
+        row.update({f"commanded{i}": float(v) for i, v in enumerate(commanded)})
+        plan = np.full(scene.nx, np.nan) if record.plan_next is None else record.plan_next
+        lcs = np.full(scene.nx, np.nan) if record.lcs_next is None else record.lcs_next
+        row["plan_lcs_error"] = float(np.linalg.norm(plan - lcs))
+        row["plan_plant_error"] = float(np.linalg.norm(plan - trajectory.states[k + 1]))
         row.update(record.info)
         rows.append(row)
     return pd.DataFrame(rows)
@@ -408,7 +501,10 @@ def run_summary(spec: ControllerSpec, trajectory: Trajectory,
     """The ``summary.json`` of a single ``c3bench closed-loop`` run."""
     from dataclasses import asdict
 
-    return {"spec": asdict(spec), "outcome": asdict(outcome),
+    outcome_fields = {key: value for key, value in asdict(outcome).items()
+                      if key != "metrics"}
+    return {"spec": asdict(spec), "outcome": outcome_fields,
+            "metrics": asdict(outcome.metrics) if outcome.metrics is not None else {},
             "failure_label": outcome.failure_label,
             "final_state": trajectory.states[-1].tolist()}
 

@@ -289,6 +289,7 @@ def make_policy(spec: ControllerSpec, config: Config,
             info["consensus_residual"] = float(residuals[-1])
         if trace is not None and trace.complementarity_delta:
             info["complementarity_delta"] = float(trace.complementarity_delta[-1])
+        info.update(plan_arrays(samples_of(models), solution, x))
         if spec.feedback and solution.ok:
             plan = planned_ball_state(solution.delta, solution.weights, scene.nq,
                                       scene.ball_position_indices, scene.nq - scene.nv)
@@ -296,6 +297,24 @@ def make_policy(spec: ControllerSpec, config: Config,
         return u, info
 
     return policy
+
+
+def plan_arrays(samples: Sequence[Any], solution: Any, x: np.ndarray) -> dict[str, Any]:
+    """The step's plan for the metrics (:mod:`bench.closed_loop_metrics`): ``commanded`` (the
+    unclipped ``u_0``), and, when the step succeeded, ``plan_next`` (the plan's ``x_1``),
+    ``lcs_next`` (the LCS rollout of the plan's ``u_0`` from ``x``) and ``plan_input``."""
+    from c3bench.bench.closed_loop_metrics import plan_prediction
+
+    raw = solution.u_raw
+    out: dict[str, Any] = {}
+    if raw is not None:
+        commanded = np.asarray(raw, dtype=float)
+        out["commanded"] = commanded.reshape(-1, commanded.shape[-1])[0].copy()
+    if not solution.ok or not np.all(np.isfinite(solution.delta)):
+        return out
+    plan, rollout, first = plan_prediction(samples, solution.delta, solution.weights, x)
+    out.update({"plan_next": plan, "lcs_next": rollout, "plan_input": first})
+    return out
 
 
 def planned_ball_state(delta: np.ndarray, weights: np.ndarray | None, nq: int,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from c3bench.bench.closed_loop import (
@@ -129,9 +130,18 @@ def test_closed_loop_command_writes_records(tmp_path, capsys) -> None:
                  str(tmp_path)]) == 0
     text = capsys.readouterr().out
     assert "success" in text and "control step" in text
+    assert "gentle success    no" in text and "plan vs LCS       angle median" in text
     out = tmp_path / "closed_loop" / "runs" / ControllerSpec().label()
     assert f"records           {out}" in text
     assert (out / "steps.csv").exists() and (out / "summary.json").exists()
+    import json
+
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["outcome"]["success"] is False  # 0.25 s cannot hold for 1 s
+    assert summary["metrics"]["clipped_inputs"] >= 1  # the first plan asks for > 30 N
+    steps = pd.read_csv(out / "steps.csv")
+    assert {"commanded0", "commanded1", "plan_lcs_error", "plan_plant_error"} <= set(steps)
+    assert steps["commanded0"].abs().max() > 30 >= steps["u0"].abs().max()
 
 
 def test_fast_robust_controller_runs_in_the_loop() -> None:

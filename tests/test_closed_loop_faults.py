@@ -156,7 +156,7 @@ def test_render_path_that_is_a_directory_fails_before_simulating(
 @pytest.mark.parametrize(("argv", "expected"), [
     (["--qp-backend", "nosuch"], "--qp-backend: unknown solver 'nosuch'"),
     (["--qp-backend", "scip"], "--qp-backend: solver 'scip' does not take c3plus_qp"),
-    (["--dt", "0.3"], "--dt 0.3: a sweep run lasts 2 s"),
+    (["--dt", "0.4"], "--dt 0.4: a sweep run lasts 3 s"),
 ])
 def test_bad_sweep_option_exits_2_at_once(argv: list[str], expected: str, tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:

@@ -1,0 +1,157 @@
+"""Physical metrics of a closed-loop run: each on a synthetic run whose answer is known by
+hand, and the plan-consistency metric against a hand rollout of a recorded step."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from c3bench.bench.closed_loop import ControllerSpec, records_frame, run_closed_loop
+from c3bench.bench.closed_loop_metrics import (
+    RunSignals,
+    SuccessRules,
+    balance_angle,
+    physical_metrics,
+)
+from c3bench.problems.config import load_config
+from c3bench.problems.linearize import linearize
+from c3bench.problems.scene import build_scene
+from c3bench.solvers.lcp import lemke
+
+DT = 0.05
+TARGET, BAND = 0.5, 0.1
+N = 61  # 3 s at 50 ms: states 0..60
+
+
+def signals(**changes: object) -> RunSignals:
+    """A 3 s run: the cube strikes to 0.9 rad, falls back into the band at t = 2 s and stays
+    there (0.52 rad); the ball touches at t = 0.5 s and is off the cube for states 30-39."""
+    times = np.arange(N) * DT
+    angles = np.concatenate([np.linspace(0.0, 0.9, 20), np.linspace(0.9, 0.7, 20),
+                             np.full(21, 0.52)])
+    gap = np.zeros(N)
+    gap[:10] = 0.05
+    gap[30:40] = 0.05
+    speed = np.zeros(N)
+    speed[9] = 0.7  # just before the touch
+    speed[10] = 0.2
+    states = np.zeros((N, 10))
+    states[:, 2] = angles
+    plan = states[1:].copy()
+    plan[:, 2] += 0.1  # the plan predicts 0.1 rad more than the plant did
+    lcs = plan.copy()
+    lcs[:, 2] -= 0.3
+    lcs[5, 2] -= 0.2  # one step is far off
+    plan[7] = lcs[7] = np.nan  # a step without a plan
+    commanded = np.zeros((N - 1, 2))
+    commanded[0] = (34.0, 10.0)
+    commanded[1] = (-5.0, -31.0)
+    commanded[2] = (30.0, 0.0)  # at the limit: not clipped
+    base = RunSignals(times=times, angles=angles, ball_gap=gap, ball_height=np.full(N, 0.1),
+                      ball_speed=speed, commanded=commanded, force_limit=30.0, cube_side=0.3,
+                      plan_next=plan, lcs_next=lcs, states=states)
+    return replace(base, **changes)
+
+
+def test_balance_angle_is_pi_over_4_for_a_cube() -> None:
+    assert balance_angle(0.3) == pytest.approx(math.pi / 4)
+    assert balance_angle(0.2, 0.4) == pytest.approx(math.atan(0.5))
+
+
+def test_each_metric_on_a_hand_made_run() -> None:
+    m = physical_metrics(signals(), TARGET, BAND)
+    assert m.peak_angle == pytest.approx(0.9) and m.passed_balance
+    assert m.first_touch_time == pytest.approx(0.5)
+    # states 10..59 stand for 50 periods after the touch: 10 of them (30-39) off the cube
+    assert m.contact_time == pytest.approx(40 * DT) and m.free_time == pytest.approx(10 * DT)
+    assert m.impact_speed == pytest.approx(0.7)
+    assert m.settling_time == pytest.approx(2.0) and m.hold_time == pytest.approx(1.0)
+    assert m.steady_offset == pytest.approx(0.02)
+    assert m.max_cube_penetration == 0.0 and m.max_table_penetration == 0.0
+    assert m.clipped_inputs == 2
+    assert m.plan_plant_angle_median == pytest.approx(0.1)
+    assert m.plan_plant_angle_max == pytest.approx(0.1)
+    assert m.plan_lcs_angle_median == pytest.approx(0.3)
+    assert m.plan_lcs_angle_max == pytest.approx(0.5)
+    assert m.plan_lcs_error_max == pytest.approx(0.5)  # only the angle differs
+    assert m.success and not m.gentle_success
+
+
+def test_gentle_success_needs_no_pass_of_the_balance_angle() -> None:
+    base = signals()
+    angles = np.minimum(base.angles, 0.7)
+    m = physical_metrics(replace(base, angles=angles), TARGET, BAND)
+    assert m.peak_angle == pytest.approx(0.7) and not m.passed_balance
+    assert m.success and m.gentle_success
+
+
+def test_success_needs_the_hold_time_at_the_end() -> None:
+    base = signals()
+    angles = base.angles.copy()
+    angles[45] = 0.65  # leaves the band at t = 2.25 s: held 0.75 s only
+    m = physical_metrics(replace(base, angles=angles), TARGET, BAND)
+    assert m.settling_time == pytest.approx(2.3) and m.hold_time == pytest.approx(0.7)
+    assert not m.success
+    assert physical_metrics(replace(base, angles=angles), TARGET, BAND,
+                            SuccessRules(hold_time=0.5)).success
+    angles[-1] = 0.2  # ends outside the band
+    ended = physical_metrics(replace(base, angles=angles), TARGET, BAND)
+    assert math.isnan(ended.settling_time) and ended.hold_time == 0.0 and not ended.success
+
+
+def test_success_needs_three_seconds_and_no_deep_penetration() -> None:
+    base = signals()
+    short = replace(base, times=base.times * 0.9)  # a 2.7 s run
+    assert not physical_metrics(short, TARGET, BAND).success
+    gap = base.ball_gap.copy()
+    gap[25] = -0.004
+    m = physical_metrics(replace(base, ball_gap=gap), TARGET, BAND)
+    assert m.max_cube_penetration == pytest.approx(0.004) and m.success
+    height = base.ball_height.copy()
+    height[50] = -0.006  # the ball 6 mm into the table
+    m = physical_metrics(replace(base, ball_height=height), TARGET, BAND)
+    assert m.max_table_penetration == pytest.approx(0.006) and not m.success
+
+
+def test_no_touch_and_no_plan() -> None:
+    base = signals()
+    nan = np.full_like(base.plan_next, np.nan)
+    m = physical_metrics(replace(base, ball_gap=np.full(N, 0.05), plan_next=nan), TARGET,
+                         BAND)
+    assert math.isnan(m.first_touch_time) and math.isnan(m.impact_speed)
+    assert m.contact_time == 0.0 and m.free_time == 0.0
+    assert math.isnan(m.plan_lcs_error_median) and math.isnan(m.plan_plant_angle_max)
+
+
+@pytest.mark.timeout(60)
+def test_plan_consistency_equals_a_hand_rollout_of_a_recorded_step() -> None:
+    config = load_config()
+    spec = ControllerSpec(controller="c3plus", qp_backend="clarabel", qp_time_limit=None)
+    trajectory, records, outcome = run_closed_loop(spec, config, duration=0.1)
+    first = records[0]
+    assert first.plan_next is not None and first.plan_input is not None
+    assert first.commanded is not None
+    np.testing.assert_allclose(first.plan_input, first.commanded)
+    # by hand: the controller's model at the measured state and the previous input (zero)
+    lcs = linearize(build_scene(l=spec.model_l, config=config), first.state, np.zeros(2),
+                    config.mpc.dt)
+    u = first.plan_input
+    lam = lemke(lcs.F, lcs.E @ first.state + lcs.H @ u + lcs.c).z
+    assert lam is not None
+    hand = lcs.A @ first.state + lcs.B @ u + lcs.D @ lam + lcs.d
+    np.testing.assert_allclose(first.lcs_next, hand, rtol=1e-9, atol=1e-9)
+    frame = records_frame(trajectory, records, build_scene(config=config))
+    assert frame["plan_lcs_error"][0] == pytest.approx(np.linalg.norm(first.plan_next - hand))
+    assert frame["plan_plant_error"][0] == pytest.approx(
+        np.linalg.norm(first.plan_next - trajectory.states[1]))
+    errors = [np.linalg.norm(r.plan_next - r.lcs_next) for r in records
+              if r.plan_next is not None and r.lcs_next is not None]
+    assert outcome.metrics is not None
+    assert outcome.metrics.plan_lcs_error_max == pytest.approx(max(errors))
+    assert outcome.metrics.plan_lcs_error_median == pytest.approx(float(np.median(errors)))
+    # the first plan asks for more than the 30 N the simulator allows
+    assert outcome.metrics.clipped_inputs >= 1 and np.abs(first.commanded).max() > 30
+    assert not outcome.success  # 0.1 s is too short to succeed
