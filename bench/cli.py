@@ -32,7 +32,12 @@ from typing import Any
 import pandas as pd
 
 from c3bench.bench import cli_checks, store
-from c3bench.bench.cli_closed_loop import cmd_closed_loop, cmd_closed_loop_suite, cmd_sweep
+from c3bench.bench.cli_closed_loop import (
+    cmd_closed_loop,
+    cmd_closed_loop_suite,
+    cmd_closed_loop_trials,
+    cmd_sweep,
+)
 from c3bench.bench.cli_options import (
     EXIT_ERROR,
     EXIT_INTERRUPTED,
@@ -96,14 +101,34 @@ def check_run(args: argparse.Namespace) -> None:
     from c3bench.solvers import registry
 
     cli_checks.check_output_path("--results", args.results)
-    cli_checks.check_suite_to_run(args.suite, args.results)
+    in_suite = _check_instances_option(args) if args.instances is not None else None
+    if args.instances is None:
+        cli_checks.check_suite_to_run(args.suite, args.results)
     load_plugins(args.plugin)
     available = cli_checks.check_solvers(args.solvers, registry.available())
     cli_checks.check_selection(available, args.families, args.precision,
-                               cli_checks.suite_families(args.suite, args.results))
+                               in_suite if args.instances is not None
+                               else cli_checks.suite_families(args.suite, args.results))
     instances = store.SuitePaths.of(args.results, args.suite).instances
-    if instances.is_dir():
+    if args.instances is None and instances.is_dir():
         read_instance_dir(instances, args.skip_bad)
+
+
+def _check_instances_option(args: argparse.Namespace) -> set[str]:
+    """``run --instances DIR``: a directory of instances that load (bad files under the
+    ``--skip-bad`` policy); the suite becomes its name. Returns the families it holds."""
+    directory = Path(args.instances)
+    if not directory.is_dir():
+        raise InputError(f"--instances: {directory} is not a directory")
+    if any(directory.rglob("*.npz")) and not any(directory.rglob("*.json")):
+        raise InputError(f"--instances: {directory} holds .npz files but no instance headers; "
+                         f"import them first: c3bench problems import {directory} --out DIR")
+    problems = read_instance_dir(directory, args.skip_bad)
+    if not problems:
+        raise InputError(f"--instances: no instances under {directory}")
+    args.suite = directory.resolve().name
+    cli_checks.check_suite_name("--instances", args.suite)
+    return {str(problem.family) for problem in problems}
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -119,7 +144,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         rerun=args.rerun, repeats=args.repeats, time_limit=args.time_limit,
         reference_time_limit=args.reference_time_limit,
         capture=capture_for("controller"), progress=not args.quiet,
-        max_cells=args.max_cells, preload=tuple(args.plugin), skip_bad=args.skip_bad)
+        max_cells=args.max_cells, preload=tuple(args.plugin), skip_bad=args.skip_bad,
+        instances=args.instances)
     if summary.planned == 0:
         raise InputError("nothing to run: no solver accepts any instance of the selection "
                          "(--solvers, --families, --precision)")
@@ -206,7 +232,13 @@ def _add_benchmark(sub: Any) -> None:
                                      "skipped on the next run.")
     run.add_argument("--suite", default="quick", metavar="NAME",
                      help=f"suite ({', '.join(SUITES)}, or a stored one; default: quick)")
-    add_results(run, "writes ROOT/<suite>/")
+    run.add_argument("--instances", default=None, metavar="DIR",
+                     help="run this directory of instances (e.g. from `c3bench problems "
+                          "import`) instead of a generated suite: they are copied to "
+                          "ROOT/<DIR name>/instances (with a manifest written when DIR has "
+                          "none) and the results go to ROOT/<DIR name>/; --suite is then "
+                          "ignored")
+    add_results(run, "writes ROOT/<suite>/ (with --instances: ROOT/<DIR name>/)")
     add_list(run, "--solvers", metavar="NAME", help="backends",
              default_text="every available one")
     add_list(run, "--settings", metavar="PROFILE", choices=tuple(Profile),
@@ -292,7 +324,7 @@ def _add_perf(sub: Any) -> None:
 
 
 def _add_closed_loop(sub: Any) -> None:
-    """``closed-loop``, ``closed-loop-suite`` and ``sweep``."""
+    """``closed-loop``, ``closed-loop-trials``, ``closed-loop-suite`` and ``sweep``."""
     from c3bench.bench.closed_loop import CONTROLLERS, ControllerSpec
     from c3bench.bench.closed_loop_suite import (
         CLOSED_LOOP_SUITES,
@@ -326,8 +358,9 @@ def _add_closed_loop(sub: Any) -> None:
                       help="low-level PD tracking of the plan's ball motion between steps")
     loop.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
                       help=f"cube side of the model (m; default: {spec.model_l:g})")
-    loop.add_argument("--duration", type=positive_float, default=2.0, metavar="S",
-                      help="seconds of simulation, a multiple of dt (default: 2)")
+    loop.add_argument("--duration", type=positive_float, default=3.0, metavar="S",
+                      help="seconds of simulation, a multiple of dt (default: 3; success "
+                           "needs at least 3)")
     loop.add_argument("--qp-time-limit", type=positive_float, default=spec.qp_time_limit,
                       metavar="S",
                       help="seconds per QP (and C3 projection) solve, run in an isolated "
@@ -342,6 +375,36 @@ def _add_closed_loop(sub: Any) -> None:
                       help="also write an animated GIF of the run to this path")
     add_quiet(loop)
     loop.set_defaults(handler=cmd_closed_loop)
+
+    trials = sub.add_parser("closed-loop-trials",
+                            help="randomized closed-loop trials with success-rate intervals",
+                            description="N closed-loop episodes of one controller with a "
+                                        "randomized ball start, cube mass, friction and cube "
+                                        "side (resumable); prints the success rate with its "
+                                        "Wilson 95% interval and the metric medians.")
+    trials.add_argument("--controller", choices=CONTROLLERS, default=spec.controller,
+                        help=f"controller (default: {spec.controller})")
+    trials.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
+                        help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    trials.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
+                        help=f"cube side of the model (m; default: {spec.model_l:g})")
+    trials.add_argument("--samples", type=positive_int, default=spec.samples, metavar="N",
+                        help=f"robust variants: sampled models (default: {spec.samples})")
+    trials.add_argument("--feedback", action="store_true",
+                        help="low-level PD tracking of the plan's ball motion between steps")
+    trials.add_argument("--trials", type=positive_int, default=20, metavar="N",
+                        help="episodes (default: 20)")
+    trials.add_argument("--seed", type=nonnegative_int, default=0, metavar="S",
+                        help="seed of the randomization (default: 0)")
+    trials.add_argument("--duration", type=positive_float, default=3.0, metavar="S",
+                        help="seconds per episode, a multiple of dt (default: 3; success "
+                             "needs at least 3)")
+    trials.add_argument("--hold-time", type=positive_float, default=1.0, metavar="S",
+                        help="seconds the angle must stay in the band at the end (default: 1)")
+    add_executor(trials, "trials")
+    add_results(trials, "writes ROOT/closed_loop/trials/<controller label>/")
+    add_quiet(trials)
+    trials.set_defaults(handler=cmd_closed_loop_trials)
 
     suite = sub.add_parser("closed-loop-suite",
                            help="closed-loop runs: backends x controllers x seeds",

@@ -33,6 +33,7 @@ from c3bench.bench.metrics import (
     charged_times,
     family_label,
     geometric_mean,
+    is_unverified,
     ranked_time,
     ranked_time_label,
     shifted_geometric_mean,
@@ -72,6 +73,8 @@ class Comparison:
     accuracy_cells: int = 0
     accuracy_wins_a: int = 0
     accuracy_wins_b: int = 0
+    unverified_a: int = 0
+    unverified_b: int = 0
 
 
 @dataclass(frozen=True)
@@ -131,7 +134,14 @@ def _compare_group(peers: tuple[str, ...], group_a: pd.DataFrame, group_b: pd.Da
         time_ratio, time_ratio_solved, duel.ratio,
         a if rate_a > rate_b else b if rate_b > rate_a else "tie",
         _winner(time_ratio_solved if any_solved else time_ratio, a, b),
-        _winner(duel.ratio, a, b), duel.basis, duel.cells, duel.wins_a, duel.wins_b)
+        _winner(duel.ratio, a, b), duel.basis, duel.cells, duel.wins_a, duel.wins_b,
+        _unverified(group_a), _unverified(group_b))
+
+
+def _unverified(group: pd.DataFrame) -> int:
+    """Cells of ``group`` that are feasible but without a verified optimum
+    (:func:`bench.metrics.is_unverified`)."""
+    return int(sum(is_unverified(row) for row in group.to_dict("records")))
 
 
 def compare_frame(frame: pd.DataFrame, a: str, b: str) -> list[Comparison]:
@@ -159,15 +169,17 @@ def format_comparison(rows: list[Comparison], a: str, b: str) -> str:
         return f"{a} and {b} share no cell (no instance both accept with the same settings).\n"
     table = markdown_table(
         ["family", "settings", "precision", "start", "cells", f"success {a}",
-         f"success {b}", "winner", f"time {a}/{b}", f"time {a}/{b} (both solved)", "winner",
+         f"success {b}", f"unverified {a} / {b}", "winner", f"time {a}/{b}",
+         f"time {a}/{b} (both solved)", "winner",
          f"accuracy {a}/{b}", "basis (cells)", f"cells {a} / {b} more accurate", "winner"],
         [[family_label(r.family, r.variant), r.settings, r.precision, r.start, str(r.cells),
-          fmt(r.success_a, "percent"), fmt(r.success_b, "percent"), r.success_winner,
+          fmt(r.success_a, "percent"), fmt(r.success_b, "percent"),
+          f"{r.unverified_a} / {r.unverified_b}", r.success_winner,
           fmt(r.time_ratio, "rel"), fmt(r.time_ratio_solved, "rel"), r.time_winner,
           fmt(r.accuracy_ratio, "sci"),
           f"{r.accuracy_basis} ({r.accuracy_cells})" if r.accuracy_basis else "-",
           f"{r.accuracy_wins_a} / {r.accuracy_wins_b}", r.accuracy_winner] for r in rows],
-        "llllrrrlrrlrlrl")
+        "llllrrrrlrrlrlrl")
     return (f"Comparison of {a} (A) and {b} (B) on the cells both ran. Time: ratio of shifted "
             f"geometric means of the {ranked_time_label()} (shift {TIME_SHIFT:g} s) over all "
             "cells with failures at the time limit, and over the cells both solved (which "
@@ -175,6 +187,8 @@ def format_comparison(rows: list[Comparison], a: str, b: str) -> str:
             "of each cell's worst required residual (and cost error where a reference "
             "exists), actual values without a floor, on the cells both solved (else on the "
             "cells where both are finite, as the basis says); below 1 A is more accurate; "
+            "*unverified*: feasible projection / mpcc cells without a verified reference "
+            "optimum (not successes); "
             f"a cell counts for the solver whose figure is smaller by more than a factor "
             f"{CELL_FACTOR:g}. Ratios within {TIE:.0%} of 1 are ties.\n\n" + table)
 

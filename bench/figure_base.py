@@ -36,7 +36,7 @@ _KEPT: list[MplFigure] | None = None
 
 
 def time_label() -> str:
-    """The ranked time's name for axis labels and captions (``solve time``)."""
+    """The ranked time's name for axis labels and captions (``total time``)."""
     return ranked_time_label()
 
 

@@ -18,15 +18,28 @@ demand 1e-12 relative accuracy; this is OSQP's mixed test with ``eps_abs = eps_r
   :func:`solvers.residuals.dual_residual`) and relative duality gap ``<= eps``; for
   ``projection`` and ``mpcc`` the problem is a mixed-integer (non-convex) program without a
   dual certificate, so duals are neither required nor checked;
-* where a reference optimum ``f*`` exists: ``|f - f*| / max(1, |f*|) <= max(eps, s)`` with
-  ``s`` the disagreement between the reference and its cross-check (the reference's own
-  uncertainty; see :mod:`bench.reference`).
+* where a verified reference optimum ``f*`` exists (reference and cross-check agree, see
+  :mod:`bench.reference`): ``|f - f*| / max(1, |f*|) <= max(eps, s)`` with ``s`` the
+  disagreement between the reference and its cross-check (the reference's own uncertainty);
+* ``projection`` and ``mpcc`` (:data:`REFERENCE_FAMILIES`, non-convex: residuals say nothing
+  about optimality) need that verified ``f*``: a row that passes every residual check but has
+  none is **not** a success; its verdict is :data:`UNVERIFIED_VERDICT` and it is counted
+  apart (``unverified`` in the aggregates and every table).
+
+The ``verified`` column of a row says whether it was judged against a verified ``f*``
+(:func:`has_reference`); for the convex families a row without one is still judged on its
+residuals, duals and gap (a certificate of optimality on its own), so only its cost error is
+missing.
 
 Ranked time
 -----------
 Every ranking (time columns, performance profiles, ``compare``, Pareto plots, budgets) reads
 the time of a cell through :func:`ranked_time`, i.e. the column :data:`RANKED_TIME_COLUMN`;
-changing what the benchmark ranks by is a change of that one constant.
+changing what the benchmark ranks by is a change of that one constant. It is
+``total_time = setup_time + solve_time`` (the timing contract of :mod:`solvers.timing`): the
+time a C3 / C3+ controller pays, since its QP matrices change with ``rho`` at every ADMM
+iteration. ``warm`` cells are ranked by the same total (their backends get an initial guess
+but build their solver objects afresh, as in a cold cell).
 
 Aggregates (per family, variant, settings, precision, start, solver)
 --------------------------------------------------------------------
@@ -66,12 +79,17 @@ from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, QP_FAMILIES, Family
 TIME_SHIFT = 1e-4
 LOG_FLOOR = 1e-300
 """The only floor of the accuracy means: keeps ``log`` finite on exact zeros."""
-RANKED_TIME_COLUMN = "solve_time"
+RANKED_TIME_COLUMN = "total_time"
 """The results column every ranking reads (:func:`ranked_time`)."""
 DUAL_FAMILIES: tuple[Family, ...] = QP_FAMILIES
 """Families whose solutions carry meaningful duals (convex QPs and the LCP)."""
 NO_DUAL_FAMILIES: tuple[Family, ...] = COMPLEMENTARITY_FAMILIES
 """Mixed-integer families: no dual certificate, duals neither required nor checked."""
+REFERENCE_FAMILIES: tuple[Family, ...] = COMPLEMENTARITY_FAMILIES
+"""Families whose success needs a verified reference optimum (no certificate otherwise)."""
+UNVERIFIED_VERDICT = "feasible, optimality not verified (no verified reference optimum)"
+"""Verdict of a row of :data:`REFERENCE_FAMILIES` that passes every residual check but has no
+verified ``f*``: not a success, counted apart as *unverified*."""
 VARIANT_COLUMN = "variant"
 GROUP_COLUMNS: tuple[str, ...] = (
     "family", VARIANT_COLUMN, "settings", "precision", "start", "solver")
@@ -84,7 +102,7 @@ def ranked_time(frame: pd.DataFrame) -> np.ndarray:
 
 
 def ranked_time_label() -> str:
-    """The ranked time's name for labels and captions (``solve time``)."""
+    """The ranked time's name for labels and captions (``total time``)."""
     return RANKED_TIME_COLUMN.replace("_", " ")
 
 
@@ -134,8 +152,15 @@ def accuracy_columns(row: Mapping[str, Any]) -> tuple[str, ...]:
     return (*columns, "cost_error") if has_reference(row) else columns
 
 
+def is_unverified(row: Mapping[str, Any]) -> bool:
+    """Whether the row's verdict is :data:`UNVERIFIED_VERDICT` (feasible, optimality not
+    verified)."""
+    return str(row.get("verdict", "")) == UNVERIFIED_VERDICT
+
+
 def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
-    """``(success, verdict)`` of one row; ``verdict`` says why it failed (``""`` on success)."""
+    """``(success, verdict)`` of one row; ``verdict`` says why it failed (``""`` on success,
+    :data:`UNVERIFIED_VERDICT` when only the verified reference is missing)."""
     if not bool(row["found"]):
         why = row.get("failure") or "not found"
         status = str(row.get("status", "")).strip().splitlines()
@@ -156,6 +181,8 @@ def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
             reasons.append("cost_error unavailable")
         elif not error <= threshold:
             reasons.append(f"cost_error {error:.2e} > {threshold:.1e}")
+    elif str(row["family"]) in REFERENCE_FAMILIES:
+        reasons.append(UNVERIFIED_VERDICT if not reasons else "no verified reference optimum")
     return not reasons, "; ".join(reasons)
 
 
@@ -218,8 +245,9 @@ ACCURACY_MEANS: tuple[tuple[str, str], ...] = (
 """(prefix, results column) of the geometric-mean accuracy aggregates."""
 RELATIVE_TO_BEST: tuple[str, ...] = ("time", "primal", "dual", "gap", "cost_error", "worst")
 AGGREGATE_COLUMNS: tuple[str, ...] = (
-    *GROUP_COLUMNS, "cells", "successes", "success_rate", "tolerance", "time_limit",
-    "time_sgm", "time_rel", "build_sgm", "primal_sgm", "primal_rel", "dual_sgm", "dual_rel",
+    *GROUP_COLUMNS, "cells", "successes", "success_rate", "unverified", "tolerance",
+    "time_limit",
+    "time_sgm", "time_rel", "setup_sgm", "primal_sgm", "primal_rel", "dual_sgm", "dual_rel",
     "gap_sgm", "gap_rel", "complementarity_sgm", "cost_error_sgm", "cost_error_rel",
     "worst_sgm", "worst_rel", "iterations_median", "time_per_iteration", "cond_kkt_median",
     "cond_schur_raw_median", "cond_schur_equilibrated_median",
@@ -237,11 +265,12 @@ def _group_record(group: pd.DataFrame) -> dict[str, Any]:
         "cells": len(group),
         "successes": int(success.sum()),
         "success_rate": float(success.mean()),
+        "unverified": int(sum(is_unverified(r) for r in group.to_dict("records"))),
         "tolerance": float(group["tolerance"].max()),
         "time_limit": float(group["time_limit"].max()),
         "time_sgm": shifted_geometric_mean(charged_times(group), TIME_SHIFT),
-        "build_sgm": shifted_geometric_mean(
-            np.nan_to_num(group["build_time"].to_numpy(dtype=float)), TIME_SHIFT),
+        "setup_sgm": shifted_geometric_mean(
+            np.nan_to_num(group["setup_time"].to_numpy(dtype=float)), TIME_SHIFT),
         "worst_sgm": geometric_mean(worst_residual(group)),
         "iterations_median": _median(iterations),
         "time_per_iteration": _median(per_iteration),

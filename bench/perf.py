@@ -265,7 +265,7 @@ def _reference_step(context: _Context, settings: PerfSettings, samples: int, bac
         else:
             solution = controller.step_robust(systems, None, context.mpc, x)
         trace = solution.trace
-        return {"lcs": lcs_time, "qp": sum(trace.qp_build_time) + sum(trace.qp_time),
+        return {"lcs": lcs_time, "qp": sum(trace.qp_setup_time) + sum(trace.qp_time),
                 "proj": sum(trace.projection_time), "ok": solution.ok}
 
     return step

@@ -7,13 +7,19 @@ it and their relative disagreement
     spread = |f*_ref - f*_check| / max(1, |f*_ref|)
 
 is recorded as the reference's own uncertainty (:mod:`bench.metrics` judges cost errors
-against ``max(tolerance, spread)``). A reference is accepted when its solver reports a
-solution whose relative primal residual and complementarity violation are at most
-:data:`ACCEPT_RESIDUAL` (for ``lcp`` the complementarity figure is the relative natural
-residual ``||min(lam, P lam + q)||``, so a point with ``lam`` or ``w`` negative is refused);
-when the reference backend fails but the check succeeds, the check becomes the reference (the
-``reason`` column says so). When neither does, ``f*`` is NaN, every cost error of that
-instance is NaN and the report lists the reason.
+against ``max(tolerance, spread)``). A solve *passes* when its solver reports a solution whose
+relative primal residual and complementarity violation are at most :data:`ACCEPT_RESIDUAL`
+(for ``lcp`` the complementarity figure is the relative natural residual
+``||min(lam, P lam + q)||``, so a point with ``lam`` or ``w`` negative is refused).
+
+A reference is **accepted** (``available``: the instance has a verified ``f*``) only when the
+reference solve passes, the cross-check passes too, and they agree: ``spread <=``
+:data:`AGREE_COST`. Otherwise ``f*`` is NaN, every cost error of that instance is NaN, its
+rows are marked ``verified = False`` and the ``reason`` column (listed in the report) says
+why: the reference failed, the check failed, or they disagree. A check never stands in for a
+failed reference, and a plan without a check gives no verified ``f*``. The solution of a
+passing reference solve is kept even when unverified: it only warm-starts the next ADMM
+iterate.
 
 The cache ``results/<suite>/references.parquet`` holds one row per instance (with the
 reference's ``x, y, z, z_box`` for warm starts), keyed by the instance's content hash and the
@@ -35,7 +41,7 @@ import pyarrow as pa
 from c3bench.bench.store import atomic_write_bytes, parquet_bytes, read_parquet
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import Failure, Family, Profile
-from c3bench.solvers.base import WarmStart, settings_for
+from c3bench.solvers.base import Result, Settings, WarmStart, settings_for
 from c3bench.solvers.isolation import solve_isolated
 from c3bench.solvers.residuals import cost_error, residuals
 
@@ -54,11 +60,15 @@ REFERENCE_PLANS: dict[str, ReferencePlan] = {
     Family.C3PLUS_QP: ReferencePlan("clarabel", "proxqp_dense"),
     Family.C3_QP: ReferencePlan("clarabel", "proxqp_dense"),
     Family.LCP: ReferencePlan("lemke", "clarabel"),
-    Family.PROJECTION: ReferencePlan("scip", None),
-    Family.MPCC: ReferencePlan("scip", None),
+    Family.PROJECTION: ReferencePlan("scip", "bonmin"),
+    Family.MPCC: ReferencePlan("scip", "bonmin"),
+    Family.QP: ReferencePlan("clarabel", "proxqp_dense"),
 }
 
 ACCEPT_RESIDUAL = 1e-6
+AGREE_COST = 1e-6
+"""Largest relative disagreement ``|f*_ref - f*_check| / max(1, |f*_ref|)`` of an accepted
+reference."""
 REFERENCE_COLUMNS: tuple[str, ...] = (
     "instance", "family", "instance_hash", "planned_solver", "planned_check", "settings",
     "available", "solver", "reason", "failure", "status", "objective", "primal_residual",
@@ -74,15 +84,20 @@ class Reference:
     Attributes
     ----------
     available
-        Whether ``objective`` is a usable ``f*``.
+        Whether ``objective`` is a verified ``f*`` (reference and cross-check passed and
+        agree; see the module docstring).
     solver
         Backend that gave ``f*`` (``""`` when none).
     reason
-        Why there is no reference, or a note (fallback to the check).
+        Why there is no verified ``f*`` (``""`` when there is one).
+    objective
+        ``f*``; for an unverified reference the objective of the reference solve when it
+        passed its own residual test (NaN otherwise), shown but never used.
     spread
         Relative disagreement with the cross-check (NaN when it could not be computed).
     x, y, z, z_box
-        Its solution (``None`` when unknown), used to warm-start the next ADMM iterate.
+        The reference solve's solution when it passed its own residual test (``None``
+        otherwise), used to warm-start the next ADMM iterate.
     """
 
     instance: str
@@ -116,8 +131,9 @@ class Reference:
         return ReferenceValue(self.solver, self.objective, self.spread)
 
     def warm_start(self) -> WarmStart | None:
-        """The reference solution as a warm start (``None`` without one)."""
-        if not self.available or self.x is None:
+        """The reference solution as a warm start (``None`` without one; an unverified
+        solution that passed its own residual test still serves as an initial guess)."""
+        if self.x is None:
             return None
         return WarmStart(x=self.x, y=self.y, z=self.z)
 
@@ -179,43 +195,56 @@ def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
     settings = settings_for(plan.settings, time_limit=time_limit)
     main = solve_isolated(plan.solver, problem, settings)
     ok, reason, primal, compl = _accept(problem, main)
-    check = solve_isolated(plan.check, problem, settings) if plan.check else None
-    check_ok = False
-    if check is not None:
-        check_ok, check_reason, _, _ = _accept(problem, check)
-        ref.check_solver = plan.check or ""
-        ref.check_status = check.status if check_ok else check_reason
-        if check_ok:
-            ref.check_objective = float(problem.objective(np.asarray(check.x, dtype=float)))
-    chosen = main
+    ref.status, ref.solve_time = main.status, float(main.solve_time)
+    ref.failure = str(Failure.NONE) if ok else (str(main.failure) or "inaccurate")
     if ok:
-        ref.reason = ""
-    elif check is not None and check_ok:
-        chosen = check
-        ref.reason = f"{reason}; using the cross-check {plan.check} instead"
-        ok, _, primal, compl = _accept(problem, check)
-    else:
-        ref.reason = reason
-        ref.failure = str(main.failure) or "inaccurate"
-        ref.status = main.status
-        ref.solve_time = float(main.solve_time)
-        return ref
-    ref.available = True
-    ref.solver = chosen.solver
-    ref.status = chosen.status
-    ref.failure = str(Failure.NONE)
-    ref.solve_time = float(chosen.solve_time)
-    ref.x = np.asarray(chosen.x, dtype=float)
+        _keep_solution(ref, problem, main, primal, compl)
+    check_ok, check_reason = _cross_check(ref, problem, plan, settings)
+    if ok and check_ok:
+        ref.spread = cost_error(ref.check_objective, ref.objective)
+    ref.reason = _verdict(ok, reason, plan, check_ok, check_reason, ref.spread)
+    ref.available = not ref.reason
+    ref.solver = plan.solver if ref.available else ""
+    return ref
+
+
+def _keep_solution(ref: Reference, problem: Problem, result: Result, primal: float,
+                   compl: float) -> None:
+    """Store a passing reference solve's point, objective and residuals in ``ref``."""
+    ref.x = np.asarray(result.x, dtype=float)
     ref.objective = float(problem.objective(ref.x))
     ref.primal_residual, ref.complementarity_violation = primal, compl
-    if chosen is main and check_ok:
-        ref.spread = cost_error(ref.check_objective, ref.objective)
-    elif chosen is not main:
-        ref.spread = float("nan")
     for name in ("y", "z", "z_box"):
-        value = getattr(chosen, name)
+        value = getattr(result, name)
         setattr(ref, name, None if value is None else np.asarray(value, dtype=float))
-    return ref
+
+
+def _cross_check(ref: Reference, problem: Problem, plan: ReferencePlan,
+                 settings: Settings) -> tuple[bool, str]:
+    """Solve with the plan's check (when it has one) and record it in ``ref``; whether it
+    passed and why not."""
+    if not plan.check:
+        return False, "no cross-check planned"
+    check = solve_isolated(plan.check, problem, settings)
+    check_ok, check_reason, _, _ = _accept(problem, check)
+    ref.check_solver = plan.check
+    ref.check_status = check.status if check_ok else check_reason
+    if check_ok:
+        ref.check_objective = float(problem.objective(np.asarray(check.x, dtype=float)))
+    return check_ok, check_reason
+
+
+def _verdict(ok: bool, reason: str, plan: ReferencePlan, check_ok: bool, check_reason: str,
+             spread: float) -> str:
+    """``""`` when the reference is verified, else why not (the references table shows it)."""
+    if not ok:
+        return f"{reason}; no verified f*"
+    if not check_ok:
+        return f"cross-check {plan.check or '-'} failed ({check_reason}); f* not verified"
+    if not spread <= AGREE_COST:
+        return (f"{plan.solver} and cross-check {plan.check} disagree: cost spread "
+                f"{spread:.2e} > {AGREE_COST:.0e}; f* not verified")
+    return ""
 
 
 # --- cache --------------------------------------------------------------------------------------

@@ -3,7 +3,8 @@
 Both executors (the local pool and Dask, :mod:`bench.executors`) call exactly
 :func:`run_cell`, and :func:`reference_task` for references. Timing follows docs/metrics.md
 through :func:`c3bench.solvers.isolation.solve_isolated`: an untimed warm-up, then ``repeats``
-timed solves (median), BLAS pinned to one thread, build and solve apart, the time limit
+timed solves (median), BLAS pinned to one thread, setup and solve apart
+(:mod:`c3bench.solvers.timing`; ``total_time`` is their sum), the time limit
 enforced by killing the child. A child that cannot be started
 (:class:`~c3bench.solvers.isolation.IsolationFailed`) is raised, not stored. Columns are those
 of :data:`bench.store.SCHEMA`.
@@ -20,7 +21,7 @@ import numpy as np
 
 from c3bench.bench import store
 from c3bench.bench.machine import hostname, utc_now
-from c3bench.bench.metrics import judge
+from c3bench.bench.metrics import has_reference, judge
 from c3bench.bench.planning import Cell, RunOptions
 from c3bench.bench.reference import Reference, ReferencePlan, ReferenceValue, compute_reference
 from c3bench.problems.instance import Problem
@@ -73,6 +74,7 @@ def failure_row(cell: Cell, problem: Problem, options: RunOptions, version: str,
     """A failed row for a cell whose worker died, overran or raised."""
     row = base_row(cell, problem, options, version, reference, digest)
     row.update({"found": False, "failure": str(failure), "status": status})
+    row["verified"] = has_reference(row)
     row["success"], row["verdict"] = judge(row)
     return row
 
@@ -89,8 +91,9 @@ def fill_row(row: dict[str, Any], problem: Problem, result: Result) -> dict[str,
     """Put a :class:`Result` and its residuals (the one residual module) into ``row``."""
     row.update({
         "found": bool(result.found), "failure": str(result.failure or Failure.NONE),
-        "status": str(result.status), "build_time": _finite_or_nan(result.build_time),
+        "status": str(result.status), "setup_time": _finite_or_nan(result.setup_time),
         "solve_time": _finite_or_nan(result.solve_time),
+        "total_time": _finite_or_nan(result.total_time),
         "iterations": None if result.iterations is None else int(result.iterations),
     })
     x = None if result.x is None else np.asarray(result.x, dtype=float)
@@ -108,6 +111,7 @@ def fill_row(row: dict[str, Any], problem: Problem, result: Result) -> dict[str,
     for name in store.DIAGNOSTIC_COLUMNS:
         if name in result.diagnostics:
             row[name] = _finite_or_nan(result.diagnostics[name])
+    row["verified"] = has_reference(row)
     row["success"], row["verdict"] = judge(row)
     return row
 

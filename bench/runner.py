@@ -20,6 +20,9 @@ solve is not stored: the executor retries it once, and if it still fails it is c
 
 from __future__ import annotations
 
+import os
+import secrets
+import shutil
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -51,7 +54,8 @@ from c3bench.bench.reference import (
 from c3bench.bench.rows import CellOutcome, reference_task, run_cell
 from c3bench.problems.capture import SUITES
 from c3bench.problems.errors import InputError
-from c3bench.problems.instance import InstanceSet, Problem, read_instances
+from c3bench.problems.importers import write_manifest
+from c3bench.problems.instance import MANIFEST, InstanceSet, Problem, read_instances
 from c3bench.problems.names import Start
 from c3bench.solvers import registry
 
@@ -108,6 +112,44 @@ def ensure_instances(spec: Any, paths: store.SuitePaths, capture: Any = None,
 
         generate_suite(spec, paths.instances, capture=capture, progress=progress)
     return read_instances(paths.instances, skip_bad)
+
+
+def adopt_instances(source: str | Path, paths: store.SuitePaths,
+                    skip_bad: bool = False) -> InstanceSet:
+    """Make ``paths.instances`` a copy of the instances below ``source`` (``run --instances``).
+
+    The instance files (and ``source``'s ``manifest.json``; one is written for the copy when
+    ``source`` has none) are copied into a hidden sibling and swapped in as a whole, so the
+    results folder always holds exactly the instances its cells were run on; the run's stale
+    check then drops the cells of instances that changed or left. ``source`` being that
+    folder already copies nothing. A bad file stops it, or with ``skip_bad`` is left out.
+    """
+    source = Path(source)
+    target = paths.instances
+    found = read_instances(source, skip_bad)
+    if target.exists() and source.resolve() == target.resolve():
+        return found
+    staging = target.with_name(f".instances.adopting-{os.getpid()}-{secrets.token_hex(4)}")
+    old = target.with_name(f".instances.old-{os.getpid()}-{secrets.token_hex(4)}")
+    try:
+        for json_path in found.paths:
+            relative = json_path.relative_to(source)
+            (staging / relative).parent.mkdir(parents=True, exist_ok=True)
+            for path in (json_path, json_path.with_suffix(".npz")):
+                shutil.copyfile(path, staging / relative.with_name(path.name))
+        staging.mkdir(parents=True, exist_ok=True)
+        if (source / MANIFEST).is_file():
+            shutil.copyfile(source / MANIFEST, staging / MANIFEST)
+        else:
+            write_manifest(staging, found.problems,
+                           {"name": paths.root.name, "instances_from": str(source.resolve())})
+        if target.exists():
+            os.rename(target, old)
+        os.rename(staging, target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
+    return read_instances(target, skip_bad)
 
 
 def _suite_name(suite: Any) -> str:
@@ -179,11 +221,14 @@ def _references(pool: Executor, paths: store.SuitePaths, names: set[str],
 
 
 def _load(suite: Any, paths: store.SuitePaths, families: Sequence[str] | None, capture: Any,
-          progress: bool, skip_bad: bool = False) -> tuple[dict[str, Problem], dict[str, str]]:
-    """The suite's problems of ``families`` by name, and every instance's content hash."""
+          progress: bool, skip_bad: bool = False, source: str | Path | None = None
+          ) -> tuple[dict[str, Problem], dict[str, str]]:
+    """The suite's problems of ``families`` by name, and every instance's content hash
+    (the instances copied from ``source`` first when given: :func:`adopt_instances`)."""
     problems: dict[str, Problem] = {}
     hashes: dict[str, str] = {}
-    instances = ensure_instances(suite, paths, capture, progress, skip_bad)
+    instances = (adopt_instances(source, paths, skip_bad) if source is not None
+                 else ensure_instances(suite, paths, capture, progress, skip_bad))
     for problem, path in zip(instances.problems, instances.paths, strict=True):
         hashes[problem.name] = instance_hash(path)
         if families is None or problem.family in families:
@@ -294,6 +339,7 @@ def run_suite(
     on_cell: Callable[[CellOutcome], None] | None = None,
     preload: Sequence[str] = (),
     skip_bad: bool = False,
+    instances: str | Path | None = None,
 ) -> RunSummary:
     """Run a suite into ``results_dir/<suite>/`` (see the module docstring).
 
@@ -326,6 +372,10 @@ def run_suite(
         register extra backends.
     skip_bad
         Leave out bad instance files (the CLI lists them first) instead of stopping.
+    instances
+        Run this directory of instances instead of a generated suite (``run --instances``):
+        they are copied into ``results_dir/<suite>/instances`` (:func:`adopt_instances`;
+        ``suite`` then only names the results folder, by default the directory's name).
 
     Returns
     -------
@@ -340,9 +390,9 @@ def run_suite(
         Ctrl-C, or :class:`~c3bench.problems.errors.Terminated` on SIGTERM: the workers are
         stopped and the finished cells consolidated first.
     """
-    name = _suite_name(suite)
+    name = _suite_name(suite) if suite or instances is None else Path(instances).resolve().name
     paths = store.SuitePaths.of(results_dir, name)
-    if isinstance(suite, str) and suite not in SUITES \
+    if instances is None and isinstance(suite, str) and suite not in SUITES \
             and not (paths.instances / "manifest.json").exists():
         raise InputError(f"unknown suite {suite!r}: no instances under {paths.instances} and "
                          f"not one of {', '.join(SUITES)}")
@@ -353,7 +403,8 @@ def run_suite(
         tally = _Tally()
         try:
             registry.import_plugins(preload)
-            problems, hashes = _load(suite, paths, families, capture, progress, skip_bad)
+            problems, hashes = _load(suite, paths, families, capture, progress, skip_bad,
+                                     instances)
             previous = predecessors(list(problems.values()))
             plan = plan_cells(list(problems.values()), solvers, settings, precisions, starts,
                               previous)

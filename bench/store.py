@@ -31,7 +31,8 @@ Schema versions: one :data:`SCHEMA_VERSION` for every table this module writes (
 traces, references, perf), stored in Parquet metadata (:data:`PARQUET_METADATA_KEY`) and in a
 ``schema_version`` column or key; :func:`check_version` is the one check, and readers raise
 :class:`~c3bench.problems.errors.SchemaVersionError` for any other version instead of guessing.
-Changing any stored table's columns bumps :data:`SCHEMA_VERSION`.
+Changing any stored table's columns bumps :data:`SCHEMA_VERSION`; a table whose own columns
+did not change across a bump keeps reading its older versions (:data:`PERF_READABLE`).
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ import pyarrow.parquet as pq
 from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.instance import atomic_write_bytes
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+"""Version 2: ``build_time`` renamed ``setup_time``; ``total_time`` and ``verified`` added."""
 PARQUET_METADATA_KEY = b"c3bench_schema"
 
 
@@ -102,11 +104,21 @@ SCHEMA: tuple[Column, ...] = (
            "invalid_input, non_finite, unsupported, unavailable, infeasible."),
     Column("status", "str", "Solver's own status text, or the failure reason."),
     Column("success", "bool", "found and every residual of the family below tolerance and "
-           "cost_error below tolerance where a reference exists (bench.metrics)."),
-    Column("verdict", "str", "Why success is False ('' when it is True)."),
+           "cost_error below tolerance where a verified reference exists; projection / mpcc "
+           "also need that reference (bench.metrics)."),
+    Column("verdict", "str", "Why success is False ('' when it is True); 'feasible, "
+           "optimality not verified ...' for a projection / mpcc row without a verified "
+           "reference optimum (counted apart as unverified)."),
+    Column("verified", "bool", "Judged against a verified reference optimum f* (reference "
+           "and cross-check passed and agree, bench.reference); projection / mpcc rows "
+           "without one are never a success."),
     Column("iterations", "Int64", "Solver iterations (empty when not reported)."),
-    Column("build_time", "float64", "Median seconds converting and setting up."),
-    Column("solve_time", "float64", "Median seconds solving."),
+    Column("setup_time", "float64", "Median seconds of setup: conversion, structure analysis, "
+           "factorisation, solver object construction (solvers.timing)."),
+    Column("solve_time", "float64", "Median seconds of the solve proper (iterations, back "
+           "substitution, reading the solution out)."),
+    Column("total_time", "float64", "setup_time + solve_time: what a caller pays per solve; "
+           "every ranking reads it (bench.metrics.RANKED_TIME_COLUMN)."),
     Column("objective", "float64", "1/2 x^T P x + q^T x + offset at the returned x."),
     Column("primal_residual", "float64", "max(||Ax-b||, ||[Gx-h]+||, bound violation), inf-norm."),
     Column("dual_residual", "float64", "max(||Px + q + A^T y + G^T z + z_box||_inf, largest "
@@ -308,21 +320,31 @@ def write_cell(paths: SuitePaths, row: Mapping[str, Any],
     return path
 
 
-def check_version(version: Any, source: Path) -> None:
-    """Raise :class:`SchemaVersionError` unless ``version`` is :data:`SCHEMA_VERSION`."""
-    if version != SCHEMA_VERSION:
+def check_version(version: Any, source: Path,
+                  readable: tuple[int, ...] = (SCHEMA_VERSION,)) -> None:
+    """Raise :class:`SchemaVersionError` unless ``version`` is one of ``readable`` (by
+    default :data:`SCHEMA_VERSION` only; see :data:`PERF_READABLE`)."""
+    if version not in readable:
         raise SchemaVersionError(
             f"{source}: written with results schema version {version!r}, this c3bench reads "
-            f"version {SCHEMA_VERSION}; rerun the command that wrote it (`c3bench run "
-            f"--rerun` for a suite) or delete {source.parent} to regenerate it")
+            f"version {SCHEMA_VERSION} and cannot update it in place (`--rerun` reads it too); "
+            f"delete or move {results_folder(source)} and run the command that wrote it again")
 
 
-def check_frame_version(frame: pd.DataFrame, source: Path) -> None:
+def results_folder(source: Path) -> Path:
+    """The folder a command owns for a stored file: the suite directory for its cells,
+    traces and tables, ``perf/`` for a perf run file."""
+    parent = source.parent
+    return parent.parent if parent.name in ("cells", "traces", PERF_RUNS) else parent
+
+
+def check_frame_version(frame: pd.DataFrame, source: Path,
+                        readable: tuple[int, ...] = (SCHEMA_VERSION,)) -> None:
     """Check the ``schema_version`` column of a table read from ``source`` (CSV files)."""
     if "schema_version" not in frame.columns:
         raise SchemaVersionError(f"{source}: no schema_version column; not a c3bench file")
     for version in set(frame["schema_version"].tolist()) or {SCHEMA_VERSION}:
-        check_version(version, source)
+        check_version(version, source, readable)
 
 
 def parquet_bytes(table: pa.Table | pd.DataFrame) -> bytes:
@@ -336,8 +358,9 @@ def parquet_bytes(table: pa.Table | pd.DataFrame) -> bytes:
     return bytes(sink.getvalue().to_pybytes())
 
 
-def read_parquet(path: Path) -> pa.Table:
-    """Read a Parquet file written by :func:`parquet_bytes`, checking its schema version.
+def read_parquet(path: Path, readable: tuple[int, ...] = (SCHEMA_VERSION,)) -> pa.Table:
+    """Read a Parquet file written by :func:`parquet_bytes`, checking its schema version
+    (one of ``readable``).
 
     The version comes from the metadata, or, for files written before it was stored there,
     from a ``schema_version`` column.
@@ -349,9 +372,10 @@ def read_parquet(path: Path) -> pa.Table:
     raw = (table.schema.metadata or {}).get(PARQUET_METADATA_KEY)
     if raw is None and "schema_version" in table.column_names:
         for version in set(table.column("schema_version").to_pylist()) or {SCHEMA_VERSION}:
-            check_version(version, path)
+            check_version(version, path, readable)
         return table
-    check_version(int(raw) if raw is not None and raw.decode().isdigit() else raw, path)
+    check_version(int(raw) if raw is not None and raw.decode().isdigit() else raw, path,
+                  readable)
     return table
 
 
@@ -366,7 +390,8 @@ def read_cell(path: Path) -> dict[str, Any]:
         return normalise_row(payload)
     except (TypeError, ValueError) as error:
         raise SchemaVersionError(f"{path}: {error}; not a valid schema version "
-                                 f"{SCHEMA_VERSION} cell (rerun with --rerun)") from error
+                                 f"{SCHEMA_VERSION} cell (delete or move "
+                                 f"{results_folder(path)} and run again)") from error
 
 
 def read_cells(paths: SuitePaths) -> list[dict[str, Any]]:
@@ -506,6 +531,9 @@ PERF_SCHEMA: tuple[Column, ...] = (
     Column("host", "str", "Machine name, processor and cores."),
 )
 PERF_COLUMNS: tuple[str, ...] = tuple(column.name for column in PERF_SCHEMA)
+PERF_READABLE: tuple[int, ...] = (1, SCHEMA_VERSION)
+"""Schema versions whose perf tables this c3bench reads: :data:`PERF_SCHEMA` is unchanged
+since version 1 (version 2 changed the results table only), so stored perf runs are kept."""
 
 
 PERF_RUNS = "runs"
@@ -565,7 +593,8 @@ def _adopt_perf_table(results_dir: str | Path) -> None:
 
 def consolidate_perf(results_dir: str | Path) -> tuple[Path, Path]:
     """Rewrite ``perf.parquet`` and ``perf.csv`` with every run file, oldest run first."""
-    frames = [read_parquet(path).to_pandas() for path in perf_run_files(results_dir)]
+    frames = [read_parquet(path, PERF_READABLE).to_pandas()
+              for path in perf_run_files(results_dir)]
     frame = pd.concat(frames, ignore_index=True) if frames else \
         pd.DataFrame(columns=list(PERF_COLUMNS))
     parquet, csv = perf_files(results_dir)
@@ -582,10 +611,10 @@ def read_perf(results_dir: str | Path) -> pd.DataFrame:
     """
     parquet, csv = perf_files(results_dir)
     if parquet.exists():
-        frame = read_parquet(parquet).to_pandas()
+        frame = read_parquet(parquet, PERF_READABLE).to_pandas()
     elif csv.exists():
         frame = pd.read_csv(csv, keep_default_na=False, na_values=["nan", "NaN", ""])
-        check_frame_version(frame, csv)
+        check_frame_version(frame, csv, PERF_READABLE)
     else:
         raise FileNotFoundError(f"no perf results under {parquet.parent}; run `c3bench perf`")
     return frame

@@ -23,6 +23,7 @@ import numpy as np
 from c3bench.problems.errors import BackendUnavailable, InputError
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import PROFILE_TOLERANCE, Failure, Family, Precision, Profile
+from c3bench.solvers.timing import total_time
 
 
 @dataclass(frozen=True)
@@ -125,8 +126,10 @@ class Result:
         Primal, equality duals, inequality duals, box duals (``None`` when unknown).
     iterations
         Solver iterations (``None`` when not reported).
-    build_time, solve_time
-        Seconds spent converting and setting up, then solving.
+    setup_time, solve_time
+        Seconds of setup (conversion, structure analysis, factorisation, solver object
+        construction), then of the solve proper: the one timing contract of
+        :mod:`c3bench.solvers.timing`; a caller pays their sum, :attr:`total_time`.
     objective
         ``1/2 x P x + q x + objective_offset`` at ``x``.
     trace
@@ -149,12 +152,17 @@ class Result:
     z: np.ndarray | None = None
     z_box: np.ndarray | None = None
     iterations: int | None = None
-    build_time: float = 0.0
+    setup_time: float = 0.0
     solve_time: float = 0.0
     objective: float | None = None
     trace: dict[str, list[float]] = field(default_factory=dict)
     diagnostics: dict[str, float] = field(default_factory=dict)
     failure: str = Failure.NONE
+
+    @property
+    def total_time(self) -> float:
+        """``setup_time + solve_time``: what the caller pays for this solve."""
+        return total_time(self.setup_time, self.solve_time)
 
     @classmethod
     def failed(cls, solver: str, problem: str, failure: Failure, status: str,
@@ -178,9 +186,10 @@ class Backend:
 
     Subclasses set ``name``, ``families`` (what they accept), ``package`` (the import name
     whose version is reported), optionally ``precisions`` and ``description``, and implement
-    :meth:`solve`. They measure ``build_time`` and ``solve_time`` with
-    :class:`c3bench.solvers.timing.Stopwatch` and leave time limits and error capture to the
-    registry.
+    :meth:`solve`. They measure ``setup_time`` and ``solve_time`` with
+    :class:`c3bench.solvers.timing.Stopwatch` as the timing contract of
+    :mod:`c3bench.solvers.timing` defines them (their docstring states the split) and leave
+    time limits and error capture to the registry.
 
     A backend that cannot run here (package missing, plugin absent, no licence) raises
     :class:`~c3bench.problems.errors.BackendUnavailable` from :meth:`require` (or from

@@ -403,7 +403,7 @@ class C3Trace:
     complementarity_z: list[float] = field(default_factory=list)
     cost_z: list[float] = field(default_factory=list)
     cost_delta: list[float] = field(default_factory=list)
-    qp_build_time: list[float] = field(default_factory=list)
+    qp_setup_time: list[float] = field(default_factory=list)
     qp_time: list[float] = field(default_factory=list)
     projection_time: list[float] = field(default_factory=list)
     iteration_time: list[float] = field(default_factory=list)
@@ -431,7 +431,7 @@ class C3Trace:
             "consensus_residual": math.nan, "consensus_residual_inf": math.nan,
             "dual_residual": math.nan, "complementarity_delta": math.nan,
             "complementarity_z": math.nan, "cost_z": math.nan, "cost_delta": math.nan,
-            "qp_build_time": 0.0, "qp_time": 0.0, "projection_time": 0.0,
+            "qp_setup_time": 0.0, "qp_time": 0.0, "projection_time": 0.0,
             "iteration_time": 0.0, "cond_kkt": math.nan, "qp_found": False,
             "failed": False, "non_finite": False, "message": "",
         }
@@ -751,7 +751,7 @@ def _admm(model: _Horizon, options: C3Options, delta_init: np.ndarray, w_init: n
                           iteration_time=time.perf_counter() - started)
             status, ok = f"QP build failed at iteration {i}: {error}", False
             break
-        build_time = time.perf_counter() - build_start
+        setup_time = time.perf_counter() - build_start
         qp_start = time.perf_counter()
         assert qp_backend is not None
         assert options.qp_settings is not None
@@ -760,7 +760,7 @@ def _admm(model: _Horizon, options: C3Options, delta_init: np.ndarray, w_init: n
         cond = _kkt_condition(problem) if options.record_conditioning else math.nan
         if y is None:
             trace.append(i, rho, failed=True, non_finite="non-finite" in reason,
-                          message=reason, qp_build_time=build_time, qp_time=qp_time,
+                          message=reason, qp_setup_time=setup_time, qp_time=qp_time,
                           cond_kkt=cond, iteration_time=time.perf_counter() - started)
             status, ok = f"QP failed at iteration {i}: {reason}", False
             break
@@ -780,7 +780,7 @@ def _admm(model: _Horizon, options: C3Options, delta_init: np.ndarray, w_init: n
                     for k in range(layout.horizon)]) for j in range(S)])
         except Exception as error:  # noqa: BLE001 - a failed projection is recorded
             trace.append(i, rho, failed=True, message=f"projection failed: {error}",
-                          qp_build_time=build_time, qp_time=qp_time, cond_kkt=cond,
+                          qp_setup_time=setup_time, qp_time=qp_time, cond_kkt=cond,
                           projection_time=time.perf_counter() - projection_start,
                           qp_found=bool(result.found) if result else False,
                           iteration_time=time.perf_counter() - started)
@@ -789,7 +789,7 @@ def _admm(model: _Horizon, options: C3Options, delta_init: np.ndarray, w_init: n
         projection_time = time.perf_counter() - projection_start
         if not _finite(new_delta):
             trace.append(i, rho, failed=True, non_finite=True,
-                          message="non-finite projection", qp_build_time=build_time,
+                          message="non-finite projection", qp_setup_time=setup_time,
                           qp_time=qp_time, cond_kkt=cond, projection_time=projection_time,
                           iteration_time=time.perf_counter() - started)
             status, ok = f"non-finite projection at iteration {i}", False
@@ -809,7 +809,7 @@ def _admm(model: _Horizon, options: C3Options, delta_init: np.ndarray, w_init: n
                       consensus_residual_inf=float(np.max(np.abs(difference), initial=0.0)),
                       dual_residual=dual, complementarity_delta=comp_delta,
                       complementarity_z=comp_z, cost_z=cost_z, cost_delta=cost_delta,
-                      qp_build_time=build_time, qp_time=qp_time,
+                      qp_setup_time=setup_time, qp_time=qp_time,
                       projection_time=projection_time, cond_kkt=cond,
                       qp_found=bool(result.found) if result else False,
                       message=result.status if result else "",

@@ -96,7 +96,7 @@ def _run_repeats(job: SolveJob, notify: Callable[[int], None]) -> Result:
                    for _ in range(repeats)]
     result = results[-1]
     if repeats > 1:
-        result.build_time = statistics.median(r.build_time for r in results)
+        result.setup_time = statistics.median(r.setup_time for r in results)
         result.solve_time = statistics.median(r.solve_time for r in results)
     result.diagnostics.setdefault("timed_repeats", float(repeats))
     return result
@@ -227,7 +227,7 @@ def solve_isolated(name: str, problem: Problem, settings: Settings | None = None
     name, problem, settings, warm_start, check
         As for :func:`c3bench.solvers.registry.solve` (whose checks run first, here).
     repeats
-        Timed solves (``>= 1``); the result's ``build_time`` and ``solve_time`` are their
+        Timed solves (``>= 1``); the result's ``setup_time`` and ``solve_time`` are their
         medians (one solve when the warm-up took over :data:`SLOW_SOLVE_SECONDS`).
     warmup
         Solve once, untimed, first (first-call costs, lazy imports, JIT).

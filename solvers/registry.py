@@ -206,11 +206,11 @@ def finish(result: Result, problem: Problem) -> Result:
             return Result.failed(result.solver, problem.name, Failure.NON_FINITE,
                                  f"solver reported success but returned no solution of "
                                  f"size {problem.n}", iterations=result.iterations,
-                                 build_time=result.build_time, solve_time=result.solve_time)
+                                 setup_time=result.setup_time, solve_time=result.solve_time)
         if not np.all(np.isfinite(result.x)):
             return Result.failed(result.solver, problem.name, Failure.NON_FINITE,
                                  "solver returned a non-finite solution",
-                                 iterations=result.iterations, build_time=result.build_time,
+                                 iterations=result.iterations, setup_time=result.setup_time,
                                  solve_time=result.solve_time, x=np.asarray(result.x))
     if result.x is not None and result.objective is None and np.all(np.isfinite(result.x)):
         result.objective = problem.objective(result.x)

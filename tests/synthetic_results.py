@@ -1,8 +1,9 @@
 """Synthetic rows of the results table for the report, accuracy, compare and plot tests.
 
 :func:`row` fills every column of :data:`bench.store.SCHEMA` with a neutral default, applies
-the given values and judges the row with :func:`bench.metrics.judge` (unless ``success`` is
-given), so a test states only what it is about.
+the given values (``total_time`` is ``setup_time + solve_time`` unless given) and judges the
+row with :func:`bench.metrics.judge` (unless ``success`` is given), so a test states only
+what it is about.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ _DEFAULTS: dict[str, Any] = {
     "settings": "default", "tolerance": 1e-3, "time_limit": 10.0, "precision": "float64",
     "start": "cold", "repeats": 1, "state_index": 0, "admm_iteration": None,
     "n_variables": 10, "n_constraints": 5, "found": True, "failure": "", "status": "solved",
-    "iterations": 5, "build_time": 1e-4, "solve_time": 1e-3, "objective": 1.0,
+    "iterations": 5, "setup_time": 0.0, "solve_time": 1e-3, "objective": 1.0,
     "primal_residual_relative": 1e-12, "dual_residual_relative": 1e-12,
     "duality_gap_relative": 1e-12, "complementarity_violation": 0.0,
     "reference_solver": "", "trace_file": "", "host": "test",
@@ -35,6 +36,8 @@ def row(**values: Any) -> dict[str, Any]:
     for column in store.SCHEMA:
         out[column.name] = _DEFAULTS.get(column.name, "" if column.dtype == "str" else math.nan)
     out.update(values)
+    if "total_time" not in values:
+        out["total_time"] = out["setup_time"] + out["solve_time"]
     for absolute in ("primal_residual", "dual_residual", "duality_gap"):
         if absolute not in values:
             out[absolute] = out[f"{absolute}_relative"]

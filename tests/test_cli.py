@@ -96,7 +96,8 @@ def test_readme_synopsis_matches_the_parser() -> None:
         assert shown - options_of(parser) == set(), f"{name}: not options of the parser"
         words = synopsis[path].split()
         for positional in positionals_of(parser):
-            assert positional in words, f"{name}: positional {positional} not in README"
+            assert positional in words or f"[{positional}]" in words, \
+                f"{name}: positional {positional} not in README"
 
 
 # --- conventions -------------------------------------------------------------------------------

@@ -95,7 +95,7 @@ def finish_point(name: str, problem: Problem, settings: Settings, x: np.ndarray 
             failure = failure or Failure.ERROR
             status += f"; final point violates constraints by {violation:.3g} > {limit:.3g}"
     return Result(solver=name, problem=problem.name, found=found, status=status, x=x,
-                  iterations=iterations, build_time=watch.get("build"),
+                  iterations=iterations, setup_time=watch.get("setup"),
                   solve_time=watch.get("solve") + watch.get("polish"),
                   objective=None if x is None else problem.objective(x),
                   diagnostics=diagnostics,

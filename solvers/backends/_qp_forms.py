@@ -220,7 +220,7 @@ def finite_or_none(vector: Any) -> np.ndarray | None:
 def qp_result(name: str, problem: Problem, watch: Stopwatch, *, found: bool, status: str,
             failure: Failure, x: Any, duals: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
             iterations: int | None, diagnostics: dict[str, float] | None = None,
-            build_time: float | None = None, solve_time: float | None = None) -> Result:
+            setup_time: float | None = None, solve_time: float | None = None) -> Result:
     """The :class:`Result` of one solve; ``failure`` is used only when ``found`` is False."""
     x_array = None if x is None else np.asarray(x, dtype=float).ravel()
     y = z = z_box = None
@@ -233,7 +233,7 @@ def qp_result(name: str, problem: Problem, watch: Stopwatch, *, found: bool, sta
         solver=name, problem=problem.name, found=bool(found), status=status or "unknown",
         x=x_array, y=y, z=z, z_box=z_box,
         iterations=None if iterations is None else int(iterations),
-        build_time=watch.get("build") if build_time is None else build_time,
+        setup_time=watch.get("setup") if setup_time is None else setup_time,
         solve_time=watch.get("solve") if solve_time is None else solve_time,
         objective=objective, diagnostics=dict(diagnostics or {}),
         failure=Failure.NONE if found else (failure or Failure.ERROR))

@@ -11,6 +11,12 @@ stationarity of the ``x`` and ``eta`` columns (:func:`~c3bench.solvers.fast.equa
 (:class:`~c3bench.solvers.fast.RiccatiOptions`); ``settings.precision`` picks float64 or
 float32. A direct method: ``iterations`` is 1.
 
+Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
+reading the structure (:func:`~c3bench.solvers.fast.structure_of`: the per-step blocks of the
+LCS and the cost); solve is :func:`~c3bench.solvers.fast.solve_structured`, whose backward
+Riccati recursion factorises ``Q_vv`` step by step interleaved with the rollout (the
+factorisations cannot be split from it), and the equality duals.
+
 References
 ----------
 B. D. O. Anderson and J. B. Moore, *Optimal Control: Linear Quadratic Methods*, Prentice
@@ -77,7 +83,7 @@ class RiccatiBackend(Backend):
         extra = {k: v for k, v in settings.options.items() if k in RICCATI_OPTIONS}
         options = RiccatiOptions(precision=settings.precision, **extra)
         try:
-            with watch.lap("build"):
+            with watch.lap("setup"):
                 structured = structure_of(problem)
             with watch.lap("solve"):
                 z = solve_structured(structured, options)
@@ -91,7 +97,7 @@ class RiccatiBackend(Backend):
         return Result(solver=self.name, problem=problem.name, found=finite,
                       status="solved (Riccati)" if finite else "non-finite solution",
                       x=z, y=y if finite else None, iterations=1,
-                      build_time=watch.get("build"), solve_time=watch.get("solve"),
+                      setup_time=watch.get("setup"), solve_time=watch.get("solve"),
                       objective=problem.objective(z) if finite else None,
                       failure=Failure.NONE if finite else Failure.NON_FINITE)
 

@@ -20,6 +20,25 @@ signs.
 ``settings.options`` are passed last to ``casadi.conic``, so they win. A warm start sets
 ``x0`` and the row multiplier ``lam_a0`` (HPIPM: ``warm_start = 1``).
 
+Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
+the two-sided form (and HPIPM's stage permutation), the conversion to ``casadi.DM`` and, when
+it is built, the ``casadi.conic`` function (plugin loading, sparsity analysis;
+``diagnostics['casadi_compiled']`` is 1 then); solve is the call of that function (CasADi's
+copy of the data into the solver's structures, the solver's own initialisation and iterations).
+The function depends only on the sparsity patterns and options, so, as a controller would,
+``casadi_hpipm`` builds it once per pattern in the solver process (the cell's untimed warm-up
+builds it; :data:`CACHE_FUNCTIONS` kept): CasADi's HPIPM call allocates and initialises HPIPM
+afresh every time, so a reused function keeps no state and a cold solve stays cold.
+``casadi_qpoases`` builds a new function for every solve: CasADi's qpOASES memory hot-starts
+from its last active set once called, so a reused one would make a cold cell warm. **Artificial
+bounds:** CasADi's HPIPM interface (``hpipm_interface.cpp``, CasADi 3.x) declares every
+variable boxed (``nbx = nx``, ``nbu = nu``, ``idxb`` over all of them) and replaces infinite
+bounds by its ``inf`` option; no option removes the boxes, so HPIPM runs its interior point on
+``2 n`` extra (inactive) inequalities even for an equality-only QP (about 10 iterations instead
+of one factorisation). :data:`HPIPM_INFINITY` keeps those boxes at +-1e6 (see its note); no
+HPIPM binding without CasADi installs from the package registry here, so the report names this
+as the reason HPIPM is slow.
+
 References
 ----------
 H. J. Ferreau, C. Kirches, A. Potschka, H. G. Bock and M. Diehl, "qpOASES: a parametric
@@ -36,6 +55,7 @@ Computation 11(1), 1-36, 2019.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,6 +80,11 @@ from c3bench.solvers.timing import Stopwatch
 # tolerance of 1e-9 can never be met; 1e6 keeps the floor at 2e-10. A solution reaching half
 # of it is reported as a failure (the stand-in bound could be active).
 HPIPM_INFINITY = 1e6
+CACHE_FUNCTIONS = 16
+"""Most HPIPM ``casadi.conic`` functions kept per process (least recently used dropped)."""
+_FUNCTIONS: OrderedDict[tuple[Any, ...], Any] = OrderedDict()
+"""HPIPM's conic functions by (sparsity patterns, options), see
+:meth:`CasadiConicBackend._function`."""
 # hpipm_common.h: enum hpipm_status
 HPIPM_STATUS: dict[str, str] = {"0": "success", "1": "maximum iterations reached",
                                 "2": "minimum step length reached", "3": "NaN in solution",
@@ -82,6 +107,20 @@ class OCPRows:
     nx: list[int]
     nu: list[int]
     ng: list[int]
+    gap_columns: np.ndarray | None = None
+    """Per permuted row, the column of its ``x_{k+1}`` coefficient (-1 on lincon rows)."""
+
+    def resigned(self, form: TwoSidedForm) -> OCPRows:
+        """The same layout with the gap signs of ``form``'s values (a layout found for the
+        same sparsity pattern, reused: :func:`stage_rows`)."""
+        if self.gap_columns is None:
+            return self
+        signs = np.ones(self.order.size)
+        gap = self.gap_columns >= 0
+        values = np.asarray(sp.csr_matrix(form.matrix)[self.order[gap],
+                                                       self.gap_columns[gap]]).ravel()
+        signs[gap] = -1.0 / values
+        return OCPRows(self.order, signs, self.nx, self.nu, self.ng, self.gap_columns)
 
     def apply(self, form: TwoSidedForm) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
         """Permuted and scaled ``(matrix, lower, upper)``."""
@@ -149,18 +188,55 @@ class OCPRows:
             gaps[first].append((column, row, -1.0 / float(values[later][0])))
         order: list[int] = []
         signs: list[float] = []
+        gap_columns: list[int] = []
         for k in range(T + 1):
             if k < T:
                 columns_k = sorted(item[0] for item in gaps[k])
                 if columns_k != list(range((k + 1) * step, (k + 1) * step + nx)):
                     return None
-            for _, row, sign in sorted(gaps[k]):
+            for column, row, sign in sorted(gaps[k]):
                 order.append(row)
                 signs.append(sign)
+                gap_columns.append(column)
             order.extend(lincon[k])
             signs.extend([1.0] * len(lincon[k]))
+            gap_columns.extend([-1] * len(lincon[k]))
         return cls(np.asarray(order, dtype=np.int64), np.asarray(signs), [nx] * (T + 1),
-                   [step - nx] * T + [0], [len(rows) for rows in lincon])
+                   [step - nx] * T + [0], [len(rows) for rows in lincon],
+                   np.asarray(gap_columns, dtype=np.int64))
+
+
+_LAYOUTS: OrderedDict[tuple[Any, ...], OCPRows] = OrderedDict()
+"""HPIPM stage layouts by sparsity pattern (see :func:`stage_rows`)."""
+
+
+def stage_rows(problem: Problem, form: TwoSidedForm) -> OCPRows:
+    """HPIPM's layout of ``form``: :meth:`OCPRows.detect` (or one stage), found once per
+    sparsity pattern, equality mask and horizon layout and reused with the signs of the
+    current values (a controller's pattern never changes; the values do)."""
+    matrix = sp.csr_matrix(form.matrix, copy=True)
+    matrix.eliminate_zeros()
+    layout = problem.meta.get("layout") if isinstance(problem.meta, dict) else None
+    key = (matrix.shape, matrix.indptr.tobytes(), matrix.indices.tobytes(),
+           (form.lower == form.upper).tobytes(), repr(layout))
+    found = _LAYOUTS.get(key)
+    if found is not None:
+        _LAYOUTS.move_to_end(key)
+        return found.resigned(form)
+    rows = OCPRows.detect(problem, form) or OCPRows.one_stage(form)
+    _LAYOUTS[key] = rows
+    while len(_LAYOUTS) > CACHE_FUNCTIONS:
+        _LAYOUTS.popitem(last=False)
+    return rows
+
+
+def as_dm(matrix: Any) -> Any:
+    """``casadi.DM`` of a sparse matrix from its CSC arrays (4x faster than ``DM(scipy)``)."""
+    import casadi
+
+    csc = sp.csc_matrix(matrix)
+    return casadi.DM(casadi.Sparsity(csc.shape[0], csc.shape[1], csc.indptr.tolist(),
+                                     csc.indices.tolist()), csc.data)
 
 
 class CasadiConicBackend(QPBackend):
@@ -220,22 +296,42 @@ class CasadiConicBackend(QPBackend):
         options.update(settings.options)
         return options
 
-    def solve(self, problem: Problem, settings: Settings,
-              warm_start: WarmStart | None = None) -> Result:
-        """Build the conic solver (quietly: qpOASES prints a banner) and solve once."""
+    def _function(self, P: sp.csc_matrix, M: sp.csc_matrix, H_dm: Any, M_dm: Any,
+                  options: dict[str, Any]) -> tuple[Any, bool]:
+        """The ``casadi.conic`` function for these sparsity patterns and options, and whether
+        it was built now. qpOASES: always a new one (a reused one hot-starts). HPIPM: cached
+        per pattern and options in this process (CasADi's HPIPM call keeps no state)."""
         import casadi
 
+        key = (self.plugin, P.shape, P.indptr.tobytes(), P.indices.tobytes(), M.shape,
+               M.indptr.tobytes(), M.indices.tobytes(), repr(options))
+        if self.plugin == "hpipm" and key in _FUNCTIONS:
+            _FUNCTIONS.move_to_end(key)
+            return _FUNCTIONS[key], False
+        with quiet_stdout():  # qpOASES prints a banner
+            solver = casadi.conic("qp", self.plugin, {"h": H_dm.sparsity(),
+                                                      "a": M_dm.sparsity()}, options)
+        if self.plugin == "hpipm":
+            _FUNCTIONS[key] = solver
+            while len(_FUNCTIONS) > CACHE_FUNCTIONS:
+                _FUNCTIONS.popitem(last=False)
+        return solver, True
+
+    def solve(self, problem: Problem, settings: Settings,
+              warm_start: WarmStart | None = None) -> Result:
+        """Convert, get the conic function (built, or HPIPM's cached one) and solve once."""
+
         watch = Stopwatch()
-        with watch.lap("build"):
+        with watch.lap("setup"):
             form = TwoSidedForm.from_problem(problem, bounds_as_rows=False)
             rows = None
             if self.plugin == "hpipm":
-                rows = OCPRows.detect(problem, form) or OCPRows.one_stage(form)
+                rows = stage_rows(problem, form)
                 matrix, lower, upper = rows.apply(form)
             else:
                 matrix, lower, upper = form.matrix, form.lower, form.upper
-            H = casadi.DM(sp.csc_matrix(problem.P))
-            M = casadi.DM(matrix)
+            P_csc, M_csc = sp.csc_matrix(problem.P), sp.csc_matrix(matrix)
+            H, M = as_dm(P_csc), as_dm(M_csc)
             arguments: dict[str, Any] = {
                 "h": H, "g": problem.q, "a": M, "lba": lower, "uba": upper,
                 "lbx": form.lb, "ubx": form.ub}
@@ -245,10 +341,8 @@ class CasadiConicBackend(QPBackend):
                 lam_a0 = form.stack_duals(warm_start.y, warm_start.z, None)
                 arguments["x0"] = np.asarray(warm_start.x, dtype=float)
                 arguments["lam_a0"] = lam_a0 if rows is None else rows.permute(lam_a0)
-            with quiet_stdout():
-                solver = casadi.conic("qp", self.plugin, {"h": H.sparsity(),
-                                                          "a": M.sparsity()},
-                                      self.options(settings, rows, warm))
+            options = self.options(settings, rows, warm)
+            solver, compiled = self._function(P_csc, M_csc, H, M, options)
         with watch.lap("solve"):
             output = solver(**arguments)
         stats = solver.stats()
@@ -262,7 +356,9 @@ class CasadiConicBackend(QPBackend):
         duals = form.split_duals(lam_a if rows is None else rows.restore(lam_a),
                                  np.asarray(output["lam_x"]).ravel())
         iterations = stats.get("iter_count")
-        diagnostics = {} if rows is None else {"ocp_stages": float(len(rows.nx))}
+        diagnostics = {"casadi_compiled": float(compiled)}
+        if rows is not None:
+            diagnostics["ocp_stages"] = float(len(rows.nx))
         x = np.asarray(output["x"]).ravel()
         if found and rows is not None:
             infinity = float(self.options(settings, rows, warm).get("inf", HPIPM_INFINITY))
@@ -280,6 +376,9 @@ class CasadiConicBackend(QPBackend):
                          diagnostics=diagnostics)
 
 
-register(CasadiConicBackend("qpoases", "qpOASES online active set (CasADi conic interface)"))
-register(CasadiConicBackend("hpipm",
-                            "HPIPM interior point (CasADi conic interface, OCP stages)"))
+register(CasadiConicBackend(
+    "qpoases", "qpOASES online active set (CasADi conic interface); a fresh solver per solve "
+    "(a reused one hot-starts), so a cold solve walks ~60 active-set changes from scratch"))
+register(CasadiConicBackend(
+    "hpipm", "HPIPM interior point (CasADi conic interface, OCP stages); CasADi boxes every "
+    "variable (+-1e6 here), so HPIPM iterates (~10) even on an equality-only QP"))

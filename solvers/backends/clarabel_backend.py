@@ -11,6 +11,13 @@ Options: ``verbose`` off and ``time_limit`` always; in non-default profiles
 ``DefaultSettings``). ``found`` only for ``Solved`` (``AlmostSolved`` is not found);
 ``diagnostics`` carry Clarabel's own primal and dual residuals.
 
+Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
+the cone form (stacking, CSC conversion), the settings object and
+``clarabel.DefaultSolver(...)`` (equilibration, KKT assembly, symbolic factorisation); solve is
+``solver.solve()``: the interior-point iterations, each with its numeric KKT factorisation (the
+matrix changes every iteration, so no factorisation can move ahead of them). A fresh solver per
+call: no state survives between solves.
+
 References
 ----------
 P. J. Goulart and Y. Chen, "Clarabel: An interior-point solver for conic programs with
@@ -63,7 +70,7 @@ class ClarabelBackend(QPBackend):
         import clarabel
 
         watch = Stopwatch()
-        with watch.lap("build"):
+        with watch.lap("setup"):
             form = ConeForm.from_problem(problem)
             cones = []
             if form.n_eq:

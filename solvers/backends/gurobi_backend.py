@@ -10,6 +10,10 @@ one the backend is unavailable, and an instance over the licence's size limit is
 ``Failure.UNAVAILABLE``. The answer is polished and checked as every MIQP answer
 (:mod:`c3bench.solvers.backends._miqp`).
 
+Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
+the environment and the model (variables, SOS1 constraints, objective, parameters); solve is
+``model.optimize()``.
+
 References
 ----------
 Gurobi Optimization, LLC, "Gurobi Optimizer Reference Manual", version 11, 2024.
@@ -73,7 +77,7 @@ class GurobiMIQP(MIQPBackend):
 
         watch = Stopwatch()
         try:
-            with watch.lap("build"):
+            with watch.lap("setup"):
                 env = gp.Env(empty=True)
                 env.setParam("OutputFlag", 0)
                 env.start()
@@ -92,7 +96,7 @@ class GurobiMIQP(MIQPBackend):
                     model.addSOS(GRB.SOS_TYPE1, [variables[int(i)], variables[int(j)]],
                                  [1.0, 2.0])
                 model.Params.Threads = 1
-                model.Params.TimeLimit = solver_time_limit(settings, watch.get("build"))
+                model.Params.TimeLimit = solver_time_limit(settings, watch.get("setup"))
                 if settings.sets_tolerance:
                     model.Params.MIPGap = settings.tolerance
                     model.Params.MIPGapAbs = 0.0
@@ -110,7 +114,7 @@ class GurobiMIQP(MIQPBackend):
             if getattr(error, "errno", None) == GUROBI_SIZE_LIMIT:
                 raise BackendUnavailable(f"licence size limit: {error}") from error
             return Result.failed(self.name, problem.name, Failure.ERROR,
-                                 f"gurobi error: {error}", build_time=watch.get("build"),
+                                 f"gurobi error: {error}", setup_time=watch.get("setup"),
                                  solve_time=watch.get("solve"))
         codes = {GRB.OPTIMAL: "optimal", GRB.TIME_LIMIT: "time_limit",
                  GRB.INFEASIBLE: "infeasible", GRB.INF_OR_UNBD: "infeasible_or_unbounded",

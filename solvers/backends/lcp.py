@@ -27,6 +27,10 @@ dual; ``lam^T w`` shows up in the duality gap. ``diagnostics["natural_residual"]
   natural residual after every sweep is in ``trace["natural_residual"]``. A warm start's
   ``x`` is the initial iterate.
 
+Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
+copying ``M`` and ``q`` to float64 arrays; solve is the pivoting (Lemke) or the sweeps (PGS),
+which factorise nothing ahead.
+
 References
 ----------
 C. E. Lemke, "Bimatrix equilibrium points and mathematical programming", Management Science
@@ -89,7 +93,7 @@ class _LCPBackend(Backend):
               warm_start: WarmStart | None = None) -> Result:
         """Run the method; an unsolved LCP is ``Failure.ERROR`` with the last iterate."""
         watch = Stopwatch()
-        with watch.lap("build"):
+        with watch.lap("setup"):
             M = np.array(problem.P, dtype=np.float64)
             q = np.array(problem.q, dtype=np.float64)
         with watch.lap("solve"):
@@ -98,7 +102,7 @@ class _LCPBackend(Backend):
         if outcome.residuals:
             trace["natural_residual"] = [float(r) for r in outcome.residuals]
         common: dict[str, Any] = {"iterations": outcome.iterations,
-                                  "build_time": watch.get("build"),
+                                  "setup_time": watch.get("setup"),
                                   "solve_time": watch.get("solve"), "trace": trace}
         if not outcome.found or outcome.z is None:
             last = None if outcome.z is None else np.asarray(outcome.z, dtype=np.float64)

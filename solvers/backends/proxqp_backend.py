@@ -11,6 +11,11 @@ from ``settings.max_iterations``; ``settings.options`` last (attributes of ``qp.
 ProxQP takes no time limit here: the registry enforces it. A warm start sets ``x``, ``y`` and
 ``z`` (``InitialGuess.WARM_START``).
 
+Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
+the two-sided form, the model construction and ``qp.init`` (storing and equilibrating the
+matrices); solve is ``qp.solve`` (the proximal iterations with their factorisations, which
+ProxQP performs inside ``solve``). A fresh model per call: a cold cell is cold.
+
 References
 ----------
 A. Bambade, S. El-Kazdadi, A. Taylor and J. Carpentier, "PROX-QP: Yet another Quadratic
@@ -67,7 +72,7 @@ class ProxQPBackend(QPBackend):
         from proxsuite import proxqp
 
         watch = Stopwatch()
-        with watch.lap("build"):
+        with watch.lap("setup"):
             form = TwoSidedForm.from_problem(problem)
             eq, ineq = form.rows("eq"), form.rows("ineq")
             n_in = form.n_rows - form.n_eq
