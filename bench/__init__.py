@@ -14,6 +14,7 @@
   tables), :mod:`~c3bench.bench.palette` and :mod:`~c3bench.bench.figure_base` (figure
   conventions), :mod:`~c3bench.bench.plots_time`, :mod:`~c3bench.bench.plots_accuracy` and
   :mod:`~c3bench.bench.plots_solver` (the figures);
-* :mod:`~c3bench.bench.perf`: control-step timing; :mod:`~c3bench.bench.closed_loop`,
+* :mod:`~c3bench.bench.perf`: control-step timing, :mod:`~c3bench.bench.perf_store` its
+  history; :mod:`~c3bench.bench.closed_loop`,
   :mod:`~c3bench.bench.closed_loop_suite`: the controllers driving the MuJoCo cube.
 """

@@ -31,7 +31,7 @@ from typing import Any
 
 import pandas as pd
 
-from c3bench.bench import cli_checks, store
+from c3bench.bench import cli_checks, perf_store, store
 from c3bench.bench.cli_closed_loop import (
     cmd_closed_loop,
     cmd_closed_loop_suite,
@@ -203,9 +203,9 @@ def cmd_perf(args: argparse.Namespace) -> int:
                             seed=args.seed, results_dir=Path(args.results), cpu=args.cpu)
     frame = run_perf(settings)
     runs = {str(run) for run in frame["run_id"]}
-    written = [*(path for path in store.perf_run_files(settings.results_dir)
+    written = [*(path for path in perf_store.perf_run_files(settings.results_dir)
                  if path.stem in runs),
-               *store.perf_files(settings.results_dir),
+               *perf_store.perf_files(settings.results_dir),
                store.perf_dir(settings.results_dir) / "figures" / PERF_FIGURE]
     print("# wrote " + ", ".join(str(path) for path in written if path.exists()))
     return EXIT_OK

@@ -34,9 +34,9 @@ Warm-up steps (default 2; JAX compiles in them) are excluded; BLAS is pinned to 
 whole process to core ``N`` (XLA's CPU runtime may otherwise use a second core even with one
 intra-op thread: its CPU time then exceeds the wall time).
 
-**Files** (written atomically under ``<results>/perf/`` by :func:`bench.store.write_perf`;
+**Files** (written atomically under ``<results>/perf/`` by :func:`bench.perf_store.write_perf`;
 every run is kept): ``runs/<run_id>.parquet``, one row per timed control step of that run
-(plus one row per skipped configuration), columns :data:`bench.store.PERF_SCHEMA`;
+(plus one row per skipped configuration), columns :data:`bench.perf_store.PERF_SCHEMA`;
 ``perf.parquet`` and ``perf.csv``, every run together; and
 ``figures/perf_time_vs_samples.png`` (:func:`bench.plots.plot_perf`): median control-step time
 against the number of samples (log-log, p95 as error bars) of the latest run of each machine,
@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from c3bench.bench import store
+from c3bench.bench import perf_store, store
 from c3bench.bench.machine import affinity, host_label, load_average, utc_stamp
 from c3bench.problems.errors import InputError
 from c3bench.problems.names import Precision
@@ -311,11 +311,11 @@ def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.
             for samples in settings.samples:
                 new = _run_one(context, settings, backend, precision, device, samples, say)
                 rows.extend(new)
-    frame = pd.DataFrame(rows, columns=list(store.PERF_COLUMNS))
-    store.write_perf(frame, settings.results_dir)
+    frame = pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
+    perf_store.write_perf(frame, settings.results_dir)
     from c3bench.bench.plots import plot_perf  # matplotlib only once there is something to draw
 
-    plot_perf(store.read_perf(settings.results_dir),
+    plot_perf(perf_store.read_perf(settings.results_dir),
               store.perf_dir(settings.results_dir) / "figures" / PERF_FIGURE)
     return frame
 
@@ -371,7 +371,7 @@ def _run_one(context: _Context, settings: PerfSettings, backend: str, precision:
             f"repeats cut to {repeats} (budget {settings.reference_budget:g} s)"
         rows = _measure(context, settings, backend, precision, device, samples, step,
                         repeats, note)
-    say(format_line(pd.DataFrame(rows, columns=list(store.PERF_COLUMNS))))
+    say(format_line(pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))))
     return rows
 
 

@@ -27,7 +27,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from c3bench.bench import store
+from c3bench.bench import perf_store, store
 from c3bench.bench.figure_base import (
     DPI,
     SETTINGS_ORDER,
@@ -69,12 +69,12 @@ def all_figures(frame: pd.DataFrame, paths: store.SuitePaths) -> list[Figure]:
 def plot_perf(frame: pd.DataFrame, path: Path) -> Path | None:
     """Log-log median control-step time vs samples (p95 as error bars); ``None`` when empty.
 
-    ``frame`` holds the rows of ``c3bench perf`` (:data:`bench.store.PERF_SCHEMA`), of one
+    ``frame`` holds the rows of ``c3bench perf`` (:data:`bench.perf_store.PERF_SCHEMA`), of one
     or more runs: the latest run of each machine is drawn (the machine named in the legend
     when there are several). The reference study's step time and the target are drawn as
     horizontal lines.
     """
-    frame = store.latest_perf_runs(frame)
+    frame = perf_store.latest_perf_runs(frame)
     hosts = list(dict.fromkeys(frame["host"].astype(str)))
     summaries = []
     for host in hosts:

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from c3bench.bench import store
+from c3bench.bench import perf_store, store
 from c3bench.bench.budgets import budget_seconds
 from c3bench.bench.metrics import (
     DUAL_FAMILIES,
@@ -460,15 +460,16 @@ def perf_report_section(results_dir: str | Path, figure_link: str | None = None)
     report in ``results/<suite>/`` passes ``../perf/figures/perf_time_vs_samples.png``).
     """
     try:
-        stored = store.read_perf(results_dir)
+        stored = perf_store.read_perf(results_dir)
     except FileNotFoundError as error:
         return f"## Control-step time\n\n_No measurement: {error}._\n"
-    frame = store.latest_perf_runs(stored)
+    frame = perf_store.latest_perf_runs(stored)
     lines = ["## Control-step time", ""]
     earlier = stored["run_id"].nunique() - frame["run_id"].nunique()
     if earlier:
         lines += [f"The latest run of each machine; {earlier} earlier run(s) are kept in "
-                  f"`{store.PERF_DIR}/{store.PERF_RUNS}/` and `{store.PERF_DIR}/perf.csv`.", ""]
+                  f"`{store.PERF_DIR}/{store.PERF_RUNS}/` and `{store.PERF_DIR}/perf.csv`.",
+                  ""]
     hosts = list(dict.fromkeys(frame["host"].astype(str)))
     for host in hosts:
         if len(hosts) > 1:

@@ -22,8 +22,8 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
+from c3bench.bench import perf_store, runner, store
 from c3bench.bench import reference as reference_module
-from c3bench.bench import runner, store
 from c3bench.bench.cli import main
 from c3bench.bench.compare import compare, compare_frame
 from c3bench.bench.executors import LocalPool, TaskOutcome
@@ -456,22 +456,22 @@ def test_other_schema_versions_are_rejected(resumed: dict[str, Any], tmp_path: P
 
 
 def test_perf_files_carry_the_one_schema_version(tmp_path: Path) -> None:
-    frame = pd.DataFrame([{name: 1 for name in store.PERF_COLUMNS}])
+    frame = pd.DataFrame([{name: 1 for name in perf_store.PERF_COLUMNS}])
     frame["schema_version"] = store.SCHEMA_VERSION
-    parquet, csv = store.write_perf(frame, tmp_path)
+    parquet, csv = perf_store.write_perf(frame, tmp_path)
     assert parquet.parent == store.perf_dir(tmp_path)
-    pd.testing.assert_frame_equal(store.read_perf(tmp_path), frame)
+    pd.testing.assert_frame_equal(perf_store.read_perf(tmp_path), frame)
     table = pq.read_table(parquet)
     assert table.schema.metadata[store.PARQUET_METADATA_KEY] == str(
         store.SCHEMA_VERSION).encode()
     metadata = {**table.schema.metadata, store.PARQUET_METADATA_KEY: b"999"}
     pq.write_table(table.replace_schema_metadata(metadata), parquet)
     with pytest.raises(SchemaVersionError, match="schema version 999"):
-        store.read_perf(tmp_path)
+        perf_store.read_perf(tmp_path)
     parquet.unlink()
     frame.assign(schema_version=0).to_csv(csv, index=False)
     with pytest.raises(SchemaVersionError, match="version 0"):
-        store.read_perf(tmp_path)
+        perf_store.read_perf(tmp_path)
 
 
 def test_rows_round_trip_with_missing_values(tmp_path: Path) -> None:

@@ -330,9 +330,9 @@ def test_lcs_batch_is_read_only_with_identity(push: SimpleNamespace) -> None:
 # --- the perf benchmark (output and schema only; timings are never checked) ---------------------
 def test_perf_writes_rows_files_figure_and_report(tmp_path: Path) -> None:
     from c3bench.bench.perf import PerfSettings, run_perf
+    from c3bench.bench.perf_store import PERF_COLUMNS as COLUMNS
+    from c3bench.bench.perf_store import read_perf
     from c3bench.bench.report import perf_report_section
-    from c3bench.bench.store import PERF_COLUMNS as COLUMNS
-    from c3bench.bench.store import read_perf
 
     settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3-clarabel"),
                             repeats=2, warmup=1, iterations=2, results_dir=tmp_path)

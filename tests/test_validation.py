@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from c3bench.bench import store
+from c3bench.bench import perf_store, store
 from c3bench.bench.cli import main
 from c3bench.bench.cli_checks import describe_os_error
 from c3bench.problems.capture import SuiteSpec, provisional_capture
@@ -516,22 +516,22 @@ def test_perf_keeps_every_run_and_reports_the_latest(tmp_path: Path,
     perf = store.perf_dir(tmp_path)
     perf.mkdir(parents=True)
     shutil.copy(history, perf / "perf.parquet")  # the committed table, before per-run files
-    committed = store.read_perf(tmp_path)
+    committed = perf_store.read_perf(tmp_path)
     assert main([*PERF, "--results", str(tmp_path)]) == 0
     assert main([*PERF, "--results", str(tmp_path)]) == 0
     capsys.readouterr()
-    stored = store.read_perf(tmp_path)
+    stored = perf_store.read_perf(tmp_path)
     new_runs = sorted(set(stored["run_id"]) - set(committed["run_id"]))
     assert len(new_runs) == 2, "each perf run is kept under its own id"
     kept = stored[stored["run_id"].isin(set(committed["run_id"]))].reset_index(drop=True)
     pd.testing.assert_frame_equal(kept, committed, check_dtype=False)
-    assert len(store.perf_run_files(tmp_path)) == committed["run_id"].nunique() + 2
-    latest = store.latest_perf_runs(stored)
+    assert len(perf_store.perf_run_files(tmp_path)) == committed["run_id"].nunique() + 2
+    latest = perf_store.latest_perf_runs(stored)
     this_host = latest[latest["run_id"] == new_runs[-1]]
     assert len(this_host) == 1 and this_host["backend"].iloc[0] == "c3plus-riccati"
     section = perf_report_section(tmp_path)
     assert "earlier run(s) are kept" in section and new_runs[-1] in section
-    csv = pd.read_csv(store.perf_files(tmp_path)[1])
+    csv = pd.read_csv(perf_store.perf_files(tmp_path)[1])
     assert len(csv) == len(stored)
     assert np.array_equal(np.sort(csv["run_id"].astype(str).unique()),
                           np.sort(stored["run_id"].astype(str).unique()))
