@@ -222,7 +222,7 @@ def test_scip_finds_the_enumerated_optimum(quick: dict[str, Problem],
         assert result.objective is not None
         assert cost_error(result.objective, enumerated_optimum(problem)) <= COST_TOL, (
             problem.name, result.objective, enumerated_optimum(problem))
-        assert result.diagnostics["cvxpy_big_m"] == cvxpy_backend.BIG_M
+        assert result.diagnostics["big_m"] == cvxpy_backend.BIG_M
         assert result.diagnostics["big_m_ratio"] < cvxpy_backend.BIG_M_ACTIVE
 
 

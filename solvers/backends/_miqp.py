@@ -3,7 +3,8 @@
 A helper module (the registry skips modules whose name starts with ``_``). Every MIQP
 backend (``scip``, ``gurobi``, ``bonmin``) takes the complementarity families (``projection``,
 ``mpcc``) with the pairs as SOS1 constraints (Beale and Tomlin 1970), so no big-M constant and
-no variable bound is needed: every result carries ``diagnostics["big_m"] = 0``.
+no variable bound is needed: their results carry ``diagnostics["big_m"] = 0`` (a big-M
+formulation, ``cvxpy_scip``, records its smallest constant there instead).
 
 Polishing (default on; ``settings.options["polish"] = False`` turns it off): the mode of the
 solver's point (the smaller member of each pair set to zero) is re-solved as a convex QP
@@ -69,7 +70,7 @@ def finish_point(name: str, problem: Problem, settings: Settings, x: np.ndarray 
     ``found`` stays true only if the final point is feasible and complementary within
     ``max(settings.tolerance, 1e-6)`` (the MIQP solvers' own feasibility tolerance).
     """
-    diagnostics["big_m"] = 0.0
+    diagnostics.setdefault("big_m", 0.0)
     if x is not None:
         x = np.asarray(x, dtype=float)
         diagnostics["objective_solver"] = problem.objective(x)

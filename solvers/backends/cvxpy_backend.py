@@ -477,7 +477,7 @@ class CvxpyScip(CvxpyBackend):
         x = None if model.z.value is None else np.asarray(model.z.value, dtype=float)
         found = status in ("optimal", "gaplimit") and x is not None
         big_m = np.asarray(model.parameters["M"].value, dtype=float)
-        diagnostics = dict(solved.diagnostics, cvxpy_big_m=float(np.min(big_m, initial=math.inf)))
+        diagnostics = dict(solved.diagnostics, big_m=float(np.min(big_m, initial=math.inf)))
         if x is not None and model.members.size:
             ratio = float(np.max(x[model.members] / big_m))
             diagnostics["big_m_ratio"] = ratio
