@@ -10,7 +10,7 @@ smaller set.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -19,10 +19,13 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import pandas as pd
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure as MplFigure
+from matplotlib.lines import Line2D
 
 from c3bench.bench import store
 from c3bench.bench.metrics import family_label, ranked_time_label, with_variants
+from c3bench.bench.palette import SolverStyle, legend_outside, palette
 from c3bench.problems.names import Precision, Profile, Start
 
 DPI = 110
@@ -168,3 +171,66 @@ def save(fig: MplFigure, paths: store.SuitePaths, key: str) -> str:
     else:
         plt.close(fig)
     return relative
+
+
+PanelDrawer = Callable[[Axes, Panel, dict[str, SolverStyle], pd.DataFrame], None]
+"""Draws one (variant, settings) panel: ``(axes, panel, solver styles, the family's rows)``."""
+
+
+@dataclass(frozen=True)
+class FamilyFigure:
+    """A figure drawn once per family, one panel per (variant, settings profile), over the
+    cold-start float64 rows (:func:`family_figures`).
+
+    Attributes
+    ----------
+    key, title
+        File-stem prefix and heading (``<key>_<family>``, ``<title>: <family>``).
+    caption
+        The caption of a family's figure.
+    note
+        Why a family has no figure when ``drawable`` says so.
+    drawable
+        Whether a family's rows have anything to draw.
+    draw
+        One panel.
+    size
+        Panel width and height (inches) for a family's rows.
+    legend
+        The handles of the legend beside the panels (``None``: no legend).
+    """
+
+    key: str
+    title: str
+    caption: Callable[[str], str]
+    note: str
+    drawable: Callable[[pd.DataFrame], bool]
+    draw: PanelDrawer
+    size: Callable[[pd.DataFrame], tuple[float, float]]
+    legend: Callable[[dict[str, SolverStyle]], Sequence[Line2D]] | None
+
+
+def family_figures(frame: pd.DataFrame, paths: store.SuitePaths,
+                   spec: FamilyFigure) -> list[Figure]:
+    """One :class:`Figure` per family of ``frame`` as ``spec`` describes it (a note instead of
+    a file when the family has nothing to draw)."""
+    out = []
+    rows_all = baseline(frame)
+    for family in sorted(set(frame["family"])):
+        rows = rows_all[rows_all["family"] == family]
+        figure = Figure(f"{spec.key}_{family}", f"{spec.title}: {family}",
+                        spec.caption(family))
+        out.append(figure)
+        if rows.empty or not spec.drawable(rows):
+            figure.note = spec.note
+            continue
+        groups = panels(rows)
+        styles = palette(set(rows["solver"]))
+        width, height = spec.size(rows)
+        fig, axes = new_figure(len(groups), width, height, legend=spec.legend is not None)
+        for ax, panel in zip(axes, groups, strict=True):
+            spec.draw(ax, panel, styles, rows)
+        if spec.legend is not None:
+            legend_outside(fig, spec.legend(styles))
+        figure.path = save(fig, paths, figure.key)
+    return out

@@ -114,33 +114,19 @@ def _undrawn(points: list[ParetoPoint], drawn: list[ParetoPoint]) -> str:
 def pareto_plots(frame: pd.DataFrame, paths: store.SuitePaths) -> list[base.Figure]:
     """Per family: each solver one point (median ranked time, geometric-mean worst residual),
     the Pareto front ringed and joined; one panel per (variant, settings profile)."""
-    out = []
-    rows_all = base.baseline(frame)
-    for family in sorted(set(frame["family"])):
-        rows = rows_all[rows_all["family"] == family]
-        figure = base.Figure(
-            f"pareto_{family}", f"Time vs accuracy: {family}",
+    front = Line2D([], [], color="black", marker="o", markerfacecolor="none",
+                   linewidth=0.8, label="Pareto front")
+    return base.family_figures(frame, paths, base.FamilyFigure(
+        "pareto", "Time vs accuracy",
+        lambda family: (
             f"{family}: each solver is one point, x = median {base.time_label()} over the "
             "panel's cells with failures charged at the time limit (ms, log scale), y = "
             "geometric mean over its cells of the worst required relative residual (and cost "
             "error where a reference exists; dimensionless, log scale, not floored); ringed "
             "points joined by the black line are the Pareto front (no solver both faster and "
             "more accurate); the dotted line is the tolerance; residuals below "
-            f"{base.DRAW_FLOOR:g} drawn at {base.DRAW_FLOOR:g}; cold start, float64.")
-        if rows.empty or not np.isfinite(rows["primal_residual_relative"].to_numpy(
-                float)).any():
-            figure.note = "no cold-start float64 cell of this family has a finite residual"
-            out.append(figure)
-            continue
-        groups = base.panels(rows)
-        styles = palette(set(rows["solver"]))
-        fig, axes = base.new_figure(len(groups), 4.6, 4.0)
-        for ax, panel in zip(axes, groups, strict=True):
-            _pareto_panel(ax, panel, styles, rows)
-        front = Line2D([], [], color="black", marker="o", markerfacecolor="none",
-                       linewidth=0.8, label="Pareto front")
-        legend_outside(fig, [*solver_handles(styles, lines=False), front,
-                             _tolerance_handle()])
-        figure.path = base.save(fig, paths, figure.key)
-        out.append(figure)
-    return out
+            f"{base.DRAW_FLOOR:g} drawn at {base.DRAW_FLOOR:g}; cold start, float64."),
+        "no cold-start float64 cell of this family has a finite residual",
+        lambda rows: bool(np.isfinite(rows["primal_residual_relative"].to_numpy(float)).any()),
+        _pareto_panel, lambda rows: (4.6, 4.0),
+        lambda styles: [*solver_handles(styles, lines=False), front, _tolerance_handle()]))

@@ -17,8 +17,6 @@ from c3bench.bench import store
 from c3bench.bench.metrics import performance_profile, performance_ratios, ranked_time
 from c3bench.bench.palette import (
     SolverStyle,
-    legend_outside,
-    palette,
     panel_title,
     solver_handles,
 )
@@ -51,30 +49,17 @@ def styles_offset(solver: str, styles: dict[str, SolverStyle]) -> int:
 def performance_profiles(frame: pd.DataFrame, paths: store.SuitePaths) -> list[base.Figure]:
     """Dolan-More profiles per family, one panel per (variant, settings profile); cold,
     float64 (E. D. Dolan, J. J. Moré, Math. Programming 91(2):201-213, 2002)."""
-    out = []
-    rows_all = base.baseline(frame)
-    for family in sorted(set(frame["family"])):
-        rows = rows_all[rows_all["family"] == family]
-        figure = base.Figure(
-            f"profile_{family}", f"Performance profile: {family}",
+    return base.family_figures(frame, paths, base.FamilyFigure(
+        "profile", "Performance profile",
+        lambda family: (
             f"{family}: fraction of instances a solver solves (success as defined above) "
             f"within a factor tau of the fastest solver's {base.time_label()} (x: tau, log2 "
             "scale, dimensionless; y: fraction of the panel's n instances); cold start, "
             "float64, one panel per variant and settings profile; solvers that take no "
-            "instance of a panel are named 'not run' in its title.")
-        if rows.empty or not rows["success"].any():
-            figure.note = "no cold-start float64 cell of this family succeeded"
-            out.append(figure)
-            continue
-        groups = base.panels(rows)
-        styles = palette(set(rows["solver"]))
-        fig, axes = base.new_figure(len(groups), 4.6, 3.9)
-        for ax, panel in zip(axes, groups, strict=True):
-            _profile_panel(ax, panel, styles, rows)
-        legend_outside(fig, solver_handles(styles))
-        figure.path = base.save(fig, paths, figure.key)
-        out.append(figure)
-    return out
+            "instance of a panel are named 'not run' in its title."),
+        "no cold-start float64 cell of this family succeeded",
+        lambda rows: bool(rows["success"].any()), _profile_panel, lambda rows: (4.6, 3.9),
+        solver_handles))
 
 
 def _box_panel(ax: Axes, panel: base.Panel, styles: dict[str, SolverStyle],
@@ -106,26 +91,13 @@ def _box_panel(ax: Axes, panel: base.Panel, styles: dict[str, SolverStyle],
 def time_distributions(frame: pd.DataFrame, paths: store.SuitePaths) -> list[base.Figure]:
     """Box plots of the ranked time of successful cells per solver, one figure per family,
     one panel per (variant, settings profile)."""
-    out = []
-    rows_all = base.baseline(frame)
-    for family in sorted(set(frame["family"])):
-        rows = rows_all[rows_all["family"] == family]
-        figure = base.Figure(
-            f"times_{family}", f"Time distribution: {family}",
+    return base.family_figures(frame, paths, base.FamilyFigure(
+        "times", "Time distribution",
+        lambda family: (
             f"{family}: {base.time_label()} of the successful cold-start float64 cells per "
             f"solver (y: {base.time_label()} in ms, log scale; box: quartiles, whiskers: 1.5 "
             "IQR; n per solver in its label: successful cells of the panel's n instances), "
-            "one panel per variant and settings profile.")
-        if rows.empty or not rows["success"].any():
-            figure.note = "no successful cold-start float64 cell in this family"
-            out.append(figure)
-            continue
-        groups = base.panels(rows)
-        styles = palette(set(rows["solver"]))
-        fig, axes = base.new_figure(len(groups), max(4.5, 0.45 * rows["solver"].nunique()
-                                                     + 1.5), 4.2, legend=False)
-        for ax, panel in zip(axes, groups, strict=True):
-            _box_panel(ax, panel, styles, rows)
-        figure.path = base.save(fig, paths, figure.key)
-        out.append(figure)
-    return out
+            "one panel per variant and settings profile."),
+        "no successful cold-start float64 cell in this family",
+        lambda rows: bool(rows["success"].any()), _box_panel,
+        lambda rows: (max(4.5, 0.45 * rows["solver"].nunique() + 1.5), 4.2), None))
