@@ -22,6 +22,7 @@ CORE_MODULES: tuple[str, ...] = (
     "c3bench.problems.names",
     "c3bench.problems.errors",
     "c3bench.problems.config",
+    "c3bench.problems.limits",
     "c3bench.problems.lcs",
     "c3bench.problems.mpc",
     "c3bench.problems.instance",

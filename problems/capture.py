@@ -25,14 +25,37 @@ import numpy as np
 from c3bench.problems.lcs import LCS
 from c3bench.problems.mpc import MPC, HorizonLayout
 from c3bench.problems.names import (
+    QP_VARIANTS,
     REFERENCE_RHO0,
     REFERENCE_RHO_BLOCKS,
     REFERENCE_RHO_FACTOR,
     Block,
+    QPVariant,
 )
 
 if TYPE_CHECKING:  # type only: importing the scene at run time would load MuJoCo
     from c3bench.problems.scene import Scene
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """One scripted push a suite samples states from
+    (:func:`c3bench.problems.suites.scripted_push`).
+
+    Attributes
+    ----------
+    ball_start
+        Initial ball centre ``(x, z)`` (m); ``None``: the config's ``ball_start``.
+    push_height
+        Height of the approach point on the near face, as a fraction of the cube side.
+    """
+
+    ball_start: tuple[float, float] | None = None
+    push_height: float = 0.75
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.push_height < 1.0:
+            raise ValueError(f"push_height must be in (0, 1), got {self.push_height!r}")
 
 
 @dataclass(frozen=True)
@@ -44,7 +67,7 @@ class SuiteSpec:
     name
         ``quick``, ``default`` or ``full``.
     n_states
-        States sampled along the push.
+        States sampled along each trajectory.
     admm_iterations
         ADMM iterations at which QP steps are captured.
     projection_iterations, projection_steps
@@ -59,6 +82,25 @@ class SuiteSpec:
         Length of the scripted push (s).
     contact_band
         Ball-cube distance (m) below which a recorded step may be sampled.
+    trajectories
+        The scripted pushes (different ball starts and push heights) states are sampled from.
+    contact_change_states
+        Of the ``n_states`` of a trajectory, how many are taken at steps where the set of
+        touching contacts changes (the rest evenly in the contact band).
+    iterations_per_state, projection_iterations_per_state
+        ``0``: every iteration of ``admm_iterations`` (``projection_iterations``) at every
+        state; ``m > 0``: ``m`` of them per state, rotating through the list from state to
+        state (state ``j`` takes entries ``j m, ..., j m + m - 1`` modulo its length), so a
+        small suite still covers early and late ADMM iterates.
+    mpcc_per_trajectory
+        ``0``: an ``mpcc`` instance at every state; ``m > 0``: at the first ``m`` states of
+        each trajectory.
+    mpcc_trajectories
+        ``0``: ``mpcc`` instances on every trajectory; ``k > 0``: on the first ``k`` only (its
+        reference, a global MINLP solve, is the costliest part of a small suite).
+    qp_variants
+        Variants of the QP-step families (:class:`~c3bench.problems.names.QPVariant`),
+        ``bounded`` first.
     """
 
     name: str
@@ -71,17 +113,72 @@ class SuiteSpec:
     seed: int = 0
     duration: float = 1.5
     contact_band: float = 0.02
+    trajectories: tuple[Trajectory, ...] = (Trajectory(),)
+    contact_change_states: int = 0
+    iterations_per_state: int = 0
+    projection_iterations_per_state: int = 0
+    mpcc_per_trajectory: int = 0
+    mpcc_trajectories: int = 0
+    qp_variants: tuple[QPVariant, ...] = QP_VARIANTS
 
+    def __post_init__(self) -> None:
+        if self.n_states < 1 or not self.trajectories:
+            raise ValueError("a suite needs n_states >= 1 and at least one trajectory")
+        for label in ("contact_change_states", "iterations_per_state",
+                      "projection_iterations_per_state", "mpcc_per_trajectory",
+                      "mpcc_trajectories"):
+            if getattr(self, label) < 0:
+                raise ValueError(f"{label} must be >= 0, got {getattr(self, label)}")
+        unknown = [v for v in self.qp_variants if v not in tuple(QPVariant)]
+        if unknown or not self.qp_variants:
+            raise ValueError(f"qp_variants must be a non-empty subset of "
+                             f"{[str(v) for v in QPVariant]}, got {list(self.qp_variants)}")
+
+    def iterations_at(self, position: int, projection: bool = False) -> tuple[int, ...]:
+        """ADMM iterations captured at the ``position``-th state of the suite (counted over
+        every trajectory in order), for the QP steps or (``projection``) the projections."""
+        pool = self.projection_iterations if projection else self.admm_iterations
+        per_state = (self.projection_iterations_per_state if projection
+                     else self.iterations_per_state)
+        if per_state == 0 or not pool:
+            return tuple(pool)
+        return tuple(sorted({pool[(position * per_state + r) % len(pool)]
+                             for r in range(per_state)}))
+
+
+_PUSHES: tuple[Trajectory, ...] = (
+    Trajectory(None, 0.75),
+    Trajectory((-0.40, 0.12), 0.60),
+    Trajectory((-0.35, 0.30), 0.85),
+    Trajectory((-0.25, 0.10), 0.70),
+    Trajectory((-0.45, 0.20), 0.80),
+    Trajectory((-0.30, 0.35), 0.65),
+    Trajectory((-0.38, 0.25), 0.90),
+    Trajectory((-0.28, 0.16), 0.55),
+)
+"""Scripted pushes of the packaged suites: the config's ball start first, then other starts
+and contact heights on the near face."""
 
 SUITES: dict[str, SuiteSpec] = {
-    "quick": SuiteSpec("quick", n_states=2, admm_iterations=(0, 3, 6, 9),
-                       projection_iterations=(0, 9)),
-    "default": SuiteSpec("default", n_states=6, admm_iterations=tuple(range(10)),
-                         projection_iterations=(0, 3, 6, 9)),
-    "full": SuiteSpec("full", n_states=16, admm_iterations=tuple(range(10)),
-                      projection_iterations=tuple(range(10)), projection_steps=(0, 3, -1)),
+    "quick": SuiteSpec("quick", n_states=3, admm_iterations=(0, 3, 6, 9),
+                       projection_iterations=(0, 3), trajectories=_PUSHES[:2],
+                       contact_change_states=1, iterations_per_state=2,
+                       projection_iterations_per_state=1, mpcc_per_trajectory=1,
+                       mpcc_trajectories=1),
+    "default": SuiteSpec("default", n_states=7, admm_iterations=(0, 3, 6, 8, 9),
+                         projection_iterations=(0, 3, 6, 9), trajectories=_PUSHES[:6],
+                         contact_change_states=3),
+    "full": SuiteSpec("full", n_states=8, admm_iterations=tuple(range(10)),
+                      projection_iterations=tuple(range(10)), projection_steps=(0, 3, -1),
+                      trajectories=_PUSHES, contact_change_states=3),
 }
-"""The packaged suites by name."""
+"""The packaged suites by name: ``quick`` 6 states from 2 pushes (two QP-step iterations per
+state, (0, 3) or (6, 9) in turn, so a warm cell has its predecessor; projections at iteration 0
+or 3; one ``mpcc``, on the first push: the late projections,
+``rho_lam`` of 12800 and more, make the MINLP reference check run into its time limit and
+belong to ``default``), ``default`` 42 states from 6 pushes (QP steps at iterations 0, 3, 6, 8,
+9 and projections at 0, 3, 6, 9 at each state, 3 states per push at contact changes),
+``full`` 64 states from 8 pushes."""
 
 
 def reference_rho(iteration: int) -> dict[str, float]:
@@ -108,7 +205,7 @@ class CaptureContext:
     spec
         The suite being generated.
     state_index
-        Step index of the state along the scripted push.
+        Step index of the state along its scripted push.
     x0, u_prev
         The sampled state and the input applied before it.
     lcs, mpc
@@ -119,6 +216,13 @@ class CaptureContext:
         Generator seeded by the suite's seed and ``state_index``.
     base_meta
         Metadata every instance of this state carries.
+    position
+        Position of the state in the suite (over every trajectory; picks its ADMM iterations,
+        :meth:`SuiteSpec.iterations_at`).
+    trajectory
+        Index of its scripted push in ``spec.trajectories``.
+    with_mpcc
+        Whether an ``mpcc`` instance is built at this state.
     """
 
     spec: SuiteSpec
@@ -130,6 +234,9 @@ class CaptureContext:
     scene: Scene
     rng: np.random.Generator
     base_meta: dict[str, Any] = field(default_factory=dict)
+    position: int = 0
+    trajectory: int = 0
+    with_mpcc: bool = True
 
 
 @dataclass

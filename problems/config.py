@@ -82,23 +82,55 @@ class MPCConfig:
             raise ValueError(f"target_angle must be finite, got {self.target_angle!r}")
 
 
+def _check_range(name: str, value: Any) -> None:
+    """``value`` is a pair ``(low, high)`` of finite numbers with ``low < high``."""
+    if not (isinstance(value, tuple) and len(value) == 2
+            and all(isinstance(v, int | float) and math.isfinite(v) for v in value)):
+        raise ValueError(f"{name} must be a pair [low, high] of finite numbers, got {value!r}")
+    if not value[0] < value[1]:
+        raise ValueError(f"{name} must have low < high, got {list(value)}")
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    """The ball workspace of the MPC's state limits (:func:`c3bench.problems.limits.cube_limits`).
+
+    Ranges in m, world frame: ``ball_x`` and ``ball_y`` (spatial scene only) bound the ball
+    centre's horizontal coordinates, ``ball_z`` its height; the lower z bound actually used is
+    ``max(ball_z[0], table_height + ball_radius)`` (the ball stays above the table).
+    """
+
+    ball_x: tuple[float, float] = (-0.60, 0.60)
+    ball_y: tuple[float, float] = (-0.40, 0.40)
+    ball_z: tuple[float, float] = (0.0, 0.80)
+
+    def __post_init__(self) -> None:
+        for name in ("ball_x", "ball_y", "ball_z"):
+            _check_range(name, getattr(self, name))
+
+
 @dataclass(frozen=True)
 class Config:
-    """Scene and MPC constants together."""
+    """Scene, MPC and limit constants together."""
 
     scene: SceneConfig
     mpc: MPCConfig
+    limits: LimitsConfig = LimitsConfig()
 
     def with_mpc(self, **changes: Any) -> Config:
         """Return a copy with some MPC fields replaced."""
-        return Config(scene=self.scene, mpc=replace(self.mpc, **changes))
+        return replace(self, mpc=replace(self.mpc, **changes))
 
     def with_scene(self, **changes: Any) -> Config:
         """Return a copy with some scene fields replaced."""
-        return Config(scene=replace(self.scene, **changes), mpc=self.mpc)
+        return replace(self, scene=replace(self.scene, **changes))
+
+    def with_limits(self, **changes: Any) -> Config:
+        """Return a copy with some limit fields replaced."""
+        return replace(self, limits=replace(self.limits, **changes))
 
 
-TABLES: dict[str, type] = {"scene": SceneConfig, "mpc": MPCConfig}
+TABLES: dict[str, type] = {"scene": SceneConfig, "mpc": MPCConfig, "limits": LimitsConfig}
 """The tables of a configuration file and the dataclass each fills."""
 
 
@@ -141,7 +173,8 @@ def load_config(path: str | Path | None = None) -> Config:
     Parameters
     ----------
     path
-        A TOML file with ``[scene]`` and ``[mpc]`` tables; ``None`` reads the packaged default.
+        A TOML file with ``[scene]``, ``[mpc]`` and ``[limits]`` tables; ``None`` reads the
+        packaged default.
         Keys left out keep their defaults. An unknown table or key, a missing or unreadable
         file, or a value out of range is an :class:`InputError` naming the file and the
         table or key.
@@ -156,4 +189,5 @@ def load_config(path: str | Path | None = None) -> Config:
                          f"{', '.join(f'[{t}]' for t in TABLES)}")
     scene = _build(SceneConfig, "scene", table.get("scene", {}), source)
     mpc = _build(MPCConfig, "mpc", table.get("mpc", {}), source)
-    return Config(scene=scene, mpc=mpc)
+    limits = _build(LimitsConfig, "limits", table.get("limits", {}), source)
+    return Config(scene=scene, mpc=mpc, limits=limits)

@@ -8,11 +8,17 @@ pairs ``0 <= z_i perp z_j >= 0``.
   ``min J(x, u) + sum_k ||z_k - (delta_k - w_k)||^2_{G_k}`` s.t. ``x_0 = x0``, dynamics,
   ``eta_k = E x_k + F lam_k + H u_k + c``.
 * ``c3_qp``: C3's QP step over ``z_k = (x_k, lam_k, u_k)``, dynamics only.
+* Both QP steps come in two variants (:class:`c3bench.problems.names.QPVariant`, in
+  ``meta["variant"]``): ``bounded`` adds the MPC's limits
+  (:class:`c3bench.problems.limits.Limits`) as bounds ``u_lower <= u_k <= u_upper`` (``k < T``)
+  and ``x_lower <= x_k <= x_upper`` (``k >= 1``; ``x_0`` is fixed by the dynamics rows), as the
+  reference C3 implementation keeps them in its QP step; ``equality`` has no bounds.
 * ``projection``: one step's projection ``min ||delta - v||^2_U`` onto the complementarity set;
   variant ``c3`` couples ``eta = E x + F lam + H u + c`` (``U`` is zero on ``eta``), variant
   ``c3plus`` projects each pair ``(lam_i, eta_i)`` on its own.
 * ``mpcc``: ``min J(x, u)`` s.t. dynamics, ``eta_k = E x_k + F lam_k + H u_k + c``,
-  ``0 <= lam_k perp eta_k >= 0`` and ``|u| <= force_limit``.
+  ``0 <= lam_k perp eta_k >= 0`` and ``|u| <= force_limit``, or, given limits, the same
+  bounds as the bounded QP step.
 * ``lcp``: ``min 1/2 lam^T F lam + q^T lam`` s.t. ``lam >= 0`` with ``q = E x + H u + c``
   (its KKT conditions are the LCP because ``F`` is symmetric PSD for Anitescu).
 
@@ -32,8 +38,9 @@ import numpy as np
 
 from c3bench.problems.instance import Problem
 from c3bench.problems.lcs import LCS
+from c3bench.problems.limits import Limits
 from c3bench.problems.mpc import MPC, HorizonLayout
-from c3bench.problems.names import Block, Family, Variant
+from c3bench.problems.names import Block, Family, QPVariant, Variant
 
 
 def check_rho(rho: Mapping[str, float], blocks: tuple[str, ...]) -> dict[str, float]:
@@ -106,14 +113,35 @@ def dynamics_rows(layout: HorizonLayout, lcs: LCS, x0: np.ndarray
     return A, b
 
 
-def _input_bounds(layout: HorizonLayout, limit: float) -> tuple[np.ndarray, np.ndarray]:
+def limit_bounds(layout: HorizonLayout, limits: Limits) -> tuple[np.ndarray, np.ndarray]:
+    """``lb``, ``ub`` over ``z``: ``limits``' input box on ``u_k`` (``k < T``), its state box
+    on ``x_k`` (``1 <= k <= T``); ``x_0``, ``lam`` and ``eta`` free."""
+    if (limits.nx, limits.nu) != (layout.nx, layout.nu):
+        raise ValueError(f"limits are for (nx, nu) = {(limits.nx, limits.nu)}, the layout has "
+                         f"{(layout.nx, layout.nu)}")
     lb = np.full(layout.size, -np.inf)
     ub = np.full(layout.size, np.inf)
     for k in range(layout.horizon):
         su = layout.index(k, Block.U)
-        lb[su] = -limit
-        ub[su] = limit
+        lb[su], ub[su] = limits.u_lower, limits.u_upper
+    for k in range(1, layout.horizon + 1):
+        sx = layout.index(k, Block.X)
+        lb[sx], ub[sx] = limits.x_lower, limits.x_upper
     return lb, ub
+
+
+def _input_bounds(layout: HorizonLayout, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    return limit_bounds(layout, Limits.force_only(layout.nx, layout.nu, limit))
+
+
+def _qp_limits(layout: HorizonLayout, mpc: MPC, limits: Limits | None,
+               input_bounds: bool) -> Limits | None:
+    """The limits of a QP step: ``limits``, tightened by ``|u| <= force_limit`` when
+    ``input_bounds``; ``None`` for the equality variant."""
+    if not input_bounds:
+        return limits
+    forces = Limits.force_only(layout.nx, layout.nu, mpc.force_limit)
+    return forces if limits is None else limits.intersect(forces)
 
 
 def _check_horizon_arrays(name: str, value: np.ndarray | None, layout: HorizonLayout
@@ -157,6 +185,7 @@ def consensus_qp(
     w: np.ndarray | None = None,
     input_bounds: bool = False,
     meta: dict[str, Any] | None = None,
+    limits: Limits | None = None,
 ) -> Problem:
     """The ADMM QP step of C3+ (``family="c3plus_qp"``) or C3 (``"c3_qp"``).
 
@@ -173,7 +202,15 @@ def consensus_qp(
     delta, w
         Projection iterate and scaled dual (T x step size); zero when ``None``.
     input_bounds
-        Add ``|u_k| <= force_limit``.
+        Add ``|u_k| <= force_limit`` (on top of ``limits`` when both are given).
+    limits
+        The ``bounded`` variant's limits (``lb <= z <= ub`` on ``u_k``, ``k < T``, and on
+        ``x_k``, ``k >= 1``; :func:`limit_bounds`); ``None`` (and no ``input_bounds``): the
+        ``equality`` variant, whose arrays do not depend on this option. ``mpc.limits`` is
+        not read: the caller chooses the variant.
+
+    ``meta`` gains ``layout``, ``rho``, ``input_bounds``, ``variant`` and, when bounded,
+    ``limits`` (:meth:`Limits.to_json`).
     """
     if family not in (Family.C3PLUS_QP, Family.C3_QP):
         raise ValueError(f"family must be 'c3plus_qp' or 'c3_qp', got {family!r}")
@@ -193,10 +230,13 @@ def consensus_qp(
     offset += float(np.sum(g * anchor * anchor))
     A, b = dynamics_rows(layout, lcs, x0)
     lb = ub = None
-    if input_bounds:
-        lb, ub = _input_bounds(layout, mpc.force_limit)
+    bounds = _qp_limits(layout, mpc, limits, input_bounds)
     info = dict(meta or {})
-    info.update({"layout": layout.to_json(), "rho": weights, "input_bounds": input_bounds})
+    info.update({"layout": layout.to_json(), "rho": weights, "input_bounds": input_bounds,
+                 "variant": QPVariant.EQUALITY if bounds is None else QPVariant.BOUNDED})
+    if bounds is not None:
+        lb, ub = limit_bounds(layout, bounds)
+        info["limits"] = bounds.to_json()
     return Problem(
         name=name, family=family, P=P, q=q, A=A, b=b, lb=lb, ub=ub,
         objective_offset=offset, lcs=lcs,
@@ -206,14 +246,22 @@ def consensus_qp(
 
 
 def mpcc(name: str, lcs: LCS, mpc: MPC, x0: np.ndarray,
-         meta: dict[str, Any] | None = None) -> Problem:
-    """The whole-horizon MPC with complementarity (the problem C3 approximates)."""
+         meta: dict[str, Any] | None = None, limits: Limits | None = None) -> Problem:
+    """The whole-horizon MPC with complementarity (the problem C3 approximates).
+
+    Bounds: ``|u_k| <= force_limit`` or, given ``limits``, the bounded QP step's bounds
+    (:func:`limit_bounds`; ``meta`` then gains ``variant = "bounded"`` and ``limits``), plus
+    ``lam_k, eta_k >= 0``.
+    """
     _check_models(lcs, mpc)
     x0 = _check_x0(x0, lcs)
     layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, mpc.horizon)
     P, q, offset = _cost_terms(layout, mpc)
     A, b = dynamics_rows(layout, lcs, x0)
-    lb, ub = _input_bounds(layout, mpc.force_limit)
+    if limits is None:
+        lb, ub = _input_bounds(layout, mpc.force_limit)
+    else:
+        lb, ub = limit_bounds(layout, limits)
     pairs: list[tuple[int, int]] = []
     for k in range(layout.horizon):
         lam, eta = layout.index(k, Block.LAM), layout.index(k, Block.ETA)
@@ -222,6 +270,8 @@ def mpcc(name: str, lcs: LCS, mpc: MPC, x0: np.ndarray,
         pairs.extend(zip(range(lam.start, lam.stop), range(eta.start, eta.stop), strict=True))
     info = dict(meta or {})
     info["layout"] = layout.to_json()
+    if limits is not None:
+        info.update({"variant": QPVariant.BOUNDED, "limits": limits.to_json()})
     return Problem(
         name=name, family=Family.MPCC, P=P, q=q, A=A, b=b, lb=lb, ub=ub,
         complementarity=np.array(pairs, dtype=np.int64), objective_offset=offset, lcs=lcs,

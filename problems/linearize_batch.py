@@ -8,7 +8,8 @@ on ``l``:
 **Once per control step** (MuJoCo, on one reference model of side ``l_ref``):
 
 * the smooth dynamics by central differences, ``J_q^ref, J_v^ref, J_u^ref``, the smooth
-  acceleration ``a^ref`` and ``N``, ``N^+`` (:func:`c3bench.problems.linearize.smooth_dynamics`);
+  acceleration ``a^ref`` and ``N``, ``N^+`` (:func:`c3bench.problems.linearize.smooth_dynamics`,
+  ``4 nv + 2 nu + 1`` MuJoCo calls of which ``2 nv + 1`` run the position stage);
 * the mass matrix ``M^ref`` and the cube's rotational Jacobian ``J_r`` (3 x nv);
 * the cube pose (origin ``p``, rotation ``R``), the origin Jacobians ``J_p0`` of the cube and
   of the ball, the ball centre ``b`` and its radius ``r``.
@@ -25,11 +26,12 @@ on ``l``:
   ``J_*^j = M_j^-1 M^ref J_*^ref`` for ``* = q, v, u``, ``a^j = M_j^-1 M^ref a^ref`` and
   ``d_v^j = a^j - J_q^j q_0 - J_v^j v_0 - J_u^j u``;
 * contact geometry: bottom corners ``c_i^j = p + R s_i^j`` with ``s = (+-h_j, 0, -h_j)``,
-  ``phi = c_z - z_table``, normal ``+z``; ball-cube distance in closed form (what
-  ``mj_geomDistance`` returns for a sphere and a box): ``o = R^T (b - p)``; outside the box the
-  nearest box point is ``p + R clip(o, -h_j, h_j)``; with the centre inside it is the nearest
-  face; ``phi = +-||b - near|| - r``, normal from the box point to the ball centre, the ball's
-  point ``b - r n``;
+  ``phi = c_z - z_table``, normal ``+z``; the ball-table contact (when the scene has it) is
+  the same for every sample (``phi = b_z - r - z_table``, Jacobian the ball's); ball-cube
+  distance in closed form (what ``mj_geomDistance`` returns for a sphere and a box):
+  ``o = R^T (b - p)``; outside the box the nearest box point is ``p + R clip(o, -h_j, h_j)``;
+  with the centre inside it is the nearest face; ``phi = +-||b - near|| - r``, normal from
+  the box point to the ball centre, the ball's point ``b - r n``;
 * point Jacobians of a body point ``x``: ``J_p(x) = J_p0 + J_r x (x - p_0)`` column by column
   (rigid-body velocity ``v_x = v_0 + omega x (x - p_0)``);
 * the LCS blocks with exactly the formulas of :func:`c3bench.problems.lcs.assemble_lcs`
@@ -79,11 +81,13 @@ class BatchLinearizer:
     reference_side
         Side of the MuJoCo model used for the ``l``-independent quantities (default: the
         config's plant side); any value gives the same LCS up to rounding.
+    ball_table
+        Include the ball-table contact (default, as :func:`c3bench.problems.scene.build_scene`).
     """
 
     def __init__(self, sides: Sequence[float] | np.ndarray, config: Config | None = None,
                  variant: str = "planar", contact_model: str = "anitescu",
-                 reference_side: float | None = None) -> None:
+                 reference_side: float | None = None, ball_table: bool = True) -> None:
         if variant != "planar":
             raise NotImplementedError(
                 f"BatchLinearizer supports the planar scene only (got variant {variant!r}); "
@@ -100,7 +104,8 @@ class BatchLinearizer:
         self.contact_model = contact_model
         self.sides = side_array
         ref = self.config.scene.cube_side if reference_side is None else float(reference_side)
-        self.scene: Scene = build_scene(l=ref, variant="planar", config=self.config)
+        self.scene: Scene = build_scene(l=ref, variant="planar", config=self.config,
+                                        ball_table=ball_table)
         scene = self.scene
         self.cube_body = scene.body("cube")
         self.ball_body = scene.body("ball")
@@ -119,8 +124,10 @@ class BatchLinearizer:
             np.stack([h, np.zeros_like(h), -h], axis=-1),
         ], axis=1)  # (n, 2, 3)
         self.friction_directions = scene.friction_directions
-        self.n_contacts = 3
-        self.mu = np.array([self.config.scene.mu_table] * 2 + [self.config.scene.mu_ball])
+        self.ball_table = ball_table
+        self.n_contacts = scene.n_contacts
+        self.mu = np.array([self.config.scene.mu_table] * (self.n_contacts - 1)
+                           + [self.config.scene.mu_ball])
         self.E_t = np.kron(np.eye(self.n_contacts), np.ones((1, self.friction_directions)))
 
     @property
@@ -137,7 +144,7 @@ class BatchLinearizer:
         nq, nv = scene.nq, scene.nv
         # ---- once per control step: MuJoCo at the measured state --------------------------
         dyn = smooth_dynamics(scene, x, u)
-        acceleration = data.qacc_smooth.copy()
+        acceleration = dyn.acceleration
         M_ref = np.zeros((nv, nv))
         mujoco.mj_fullM(model, data, M_ref)
         cube_origin = data.xpos[self.cube_body].copy()
@@ -197,10 +204,18 @@ class BatchLinearizer:
         tangent = tangent / np.linalg.norm(tangent, axis=1, keepdims=True)
         ball_n = np.einsum("na,nav->nv", normal, relative)
         ball_t = np.einsum("na,nav->nv", tangent, relative)
-        phi = np.concatenate([corner_phi, ball_phi[:, None]], axis=1)  # (n, 3)
-        J_n = np.concatenate([corner_n, ball_n[:, None]], axis=1)  # (n, 3, nv)
-        J_t = np.stack([corner_t[:, 0], -corner_t[:, 0], corner_t[:, 1], -corner_t[:, 1],
-                        ball_t, -ball_t], axis=1)  # (n, 6, nv)
+        phi_parts, normal_parts = [corner_phi], [corner_n]
+        tangent_parts = [corner_t[:, 0], -corner_t[:, 0], corner_t[:, 1], -corner_t[:, 1]]
+        if self.ball_table:  # l-independent: the ball's Jacobian at its lowest point
+            lowest = centre - self.ball_radius * up
+            jac_low = jacp_ball + _skew_apply(jacr_ball, lowest - ball_origin)
+            phi_parts.append(np.full((n, 1), lowest[2] - table_z))
+            normal_parts.append(np.broadcast_to(up @ jac_low, (n, 1, nv)))
+            ball_table_t = np.broadcast_to(tangent_up @ jac_low, (n, nv))
+            tangent_parts += [ball_table_t, -ball_table_t]
+        phi = np.concatenate([*phi_parts, ball_phi[:, None]], axis=1)  # (n, contacts)
+        J_n = np.concatenate([*normal_parts, ball_n[:, None]], axis=1)  # (n, contacts, nv)
+        J_t = np.stack([*tangent_parts, ball_t, -ball_t], axis=1)  # (n, directions, nv)
         return self._assemble(dt, q0, dyn.N, dyn.N_pinv, J_q, J_v, J_u, d_v, M_inv, phi,
                               J_n, J_t)
 

@@ -16,11 +16,12 @@ Part of the plant-free core: imports neither MuJoCo nor CasADi.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from c3bench.problems.limits import Limits
 from c3bench.problems.names import BLOCKS, Block
 
 
@@ -40,6 +41,10 @@ class MPC:
         Step (s).
     force_limit
         Bound on every input component (N).
+    limits
+        Box limits on inputs and predicted states (:class:`c3bench.problems.limits.Limits`)
+        that a controller keeps in its QP step; ``None``: only ``force_limit`` (applied by
+        clipping). The cube's are :func:`c3bench.problems.limits.cube_limits`.
     """
 
     Q: np.ndarray
@@ -49,6 +54,12 @@ class MPC:
     horizon: int
     dt: float
     force_limit: float
+    limits: Limits | None = None
+
+    def __post_init__(self) -> None:
+        if self.limits is not None and (self.limits.nx, self.limits.nu) != (self.nx, self.nu):
+            raise ValueError(f"limits are for (nx, nu) = {(self.limits.nx, self.limits.nu)}, "
+                             f"the MPC has {(self.nx, self.nu)}")
 
     @property
     def nx(self) -> int:
@@ -66,6 +77,11 @@ class MPC:
         stage = np.einsum("ki,ij,kj->", errors[:-1], self.Q, errors[:-1])
         inputs = np.einsum("ki,ij,kj->", us, self.R, us)
         return float(stage + inputs + errors[-1] @ self.Q_f @ errors[-1])
+
+
+def with_limits(mpc: MPC, limits: Limits | None) -> MPC:
+    """A copy of ``mpc`` carrying ``limits``."""
+    return replace(mpc, limits=limits)
 
 
 @dataclass(frozen=True)

@@ -60,6 +60,23 @@ class Variant(StrEnum):
     C3PLUS = "c3plus"
 
 
+class QPVariant(StrEnum):
+    """Form of a QP-step instance (``c3plus_qp``, ``c3_qp``): with or without the limits.
+
+    ``bounded`` (the default) carries the MPC's input and state limits as bounds
+    ``lb <= z <= ub``, as the reference C3 implementation keeps them in its QP step;
+    ``equality`` has the dynamics (and ``eta``) rows only, for the KKT-family backends and the
+    reference study's method, which take no inequalities.
+    """
+
+    BOUNDED = "bounded"
+    EQUALITY = "equality"
+
+
+QP_VARIANTS: Final = (QPVariant.BOUNDED, QPVariant.EQUALITY)
+"""The QP-step variants a suite generates, the default first."""
+
+
 class Precision(StrEnum):
     """Floating-point precision a backend runs in."""
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from c3bench.problems.config import Config, MPCConfig, SceneConfig, load_config
 from c3bench.problems.errors import RenderUnavailable
+from c3bench.problems.limits import cube_limits
 from c3bench.problems.mpc import MPC
 
 Variant = Literal["planar", "spatial"]
@@ -57,6 +58,7 @@ def make_mjcf(
     scene: SceneConfig,
     variant: Variant = "planar",
     timestep: float | None = None,
+    ball_table: bool = True,
 ) -> str:
     """Return the MJCF text of the scene for a cube of side ``l``.
 
@@ -71,6 +73,8 @@ def make_mjcf(
     timestep
         MuJoCo integration step; defaults to ``scene.plant_timestep``. The integrator is
         semi-implicit Euler (MuJoCo's ``Euler``), the same scheme the LCS discretises.
+    ball_table
+        Declare the ball-table contact pair (friction ``mu_table``, the plant's ``solref``).
     """
     l = _check_side(l)
     if variant not in VARIANTS:
@@ -109,6 +113,9 @@ def make_mjcf(
     )
     friction_table = f"{scene.mu_table} {scene.mu_table} 0.005 0.0001 0.0001"
     friction_ball = f"{scene.mu_ball} {scene.mu_ball} 0.005 0.0001 0.0001"
+    ball_table_pair = (
+        f'<pair geom1="ball" geom2="table" condim="3" friction="{friction_table}" '
+        f'solref="{tr:.17g} {ts:.17g}"/>' if ball_table else "")
     return f"""<mujoco model="cube_tipping_{variant}">
   <option timestep="{step:.17g}" integrator="Euler" gravity="0 0 -9.81"/>
   <visual><global offwidth="640" offheight="480"/></visual>
@@ -133,6 +140,7 @@ def make_mjcf(
           solref="{tr:.17g} {ts:.17g}"/>
     <pair geom1="ball" geom2="cube" condim="3" friction="{friction_ball}"
           solref="{tr:.17g} {ts:.17g}"/>
+    {ball_table_pair}
   </contact>
   <actuator>{motors}</actuator>
   <!-- uniform-density cube: inertia m l^2 / 6 = {inertia:.6g} kg m^2 about every axis -->
@@ -154,6 +162,10 @@ class Scene:
         Cube side of this model (m): the plant's true side or a controller model's side.
     config
         The task constants it was built from.
+    corner_sites
+        Site ids of the cube's bottom corners (the cube-table contacts).
+    ball_table
+        Whether the ball collides with the table (MJCF pair and LCS contact).
     """
 
     model: mujoco.MjModel
@@ -162,6 +174,7 @@ class Scene:
     l: float
     config: Config
     corner_sites: list[int] = field(default_factory=list)
+    ball_table: bool = True
 
     @property
     def nq(self) -> int:
@@ -187,8 +200,8 @@ class Scene:
 
     @property
     def n_contacts(self) -> int:
-        """Bottom corners plus the ball-cube contact."""
-        return len(self.corner_sites) + 1
+        """LCS contacts: bottom corners, the ball-table contact (when declared), ball-cube."""
+        return len(self.corner_sites) + int(self.ball_table) + 1
 
     def geom(self, name: str) -> int:
         return int(mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name))
@@ -242,6 +255,7 @@ def build_scene(
     variant: Variant = "planar",
     config: Config | None = None,
     timestep: float | None = None,
+    ball_table: bool = True,
 ) -> Scene:
     """Compile the scene.
 
@@ -255,17 +269,21 @@ def build_scene(
         Task constants; defaults to the packaged ``cube_tipping.toml``.
     timestep
         MuJoCo step; defaults to the plant step of the config.
+    ball_table
+        Ball-table contact in the plant and in the LCS (default); ``False`` restores the
+        scene without it (one contact fewer in the LCS).
     """
     cfg = config if config is not None else load_config()
     side = cfg.scene.cube_side if l is None else _check_side(l)
-    model = mujoco.MjModel.from_xml_string(make_mjcf(side, cfg.scene, variant, timestep))
+    model = mujoco.MjModel.from_xml_string(
+        make_mjcf(side, cfg.scene, variant, timestep, ball_table))
     data = mujoco.MjData(model)
     corners = [
         int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"corner_{i}"))
         for i in range(2 if variant == "planar" else 4)
     ]
     return Scene(model=model, data=data, variant=variant, l=side, config=cfg,
-                 corner_sites=corners)
+                 corner_sites=corners, ball_table=ball_table)
 
 
 def home_state(scene: Scene) -> np.ndarray:
@@ -333,6 +351,7 @@ def build_mpc(scene: Scene, config: MPCConfig, cube_x0: float = 0.0) -> MPC:
         horizon=config.horizon,
         dt=config.dt,
         force_limit=scene.config.scene.force_limit,
+        limits=cube_limits(scene),
     )
 
 

@@ -2,14 +2,21 @@
 
 A suite is generated in three steps:
 
-1. **Scripted push** of the true plant (``l = 0.30``): a PD law on the ball position drives it
-   to the near face of the cube, then pushes forward and up, for ``duration`` seconds; the
-   state and input are recorded every ``dt``.
-2. **States** are sampled evenly (``numpy.linspace`` over step indices) among the recorded
-   steps where the ball is within ``contact_band`` of the cube, so the subproblems are
-   contact-rich.
+1. **Scripted pushes** of the true plant (``l = 0.30``), one per trajectory of the suite
+   (:class:`~c3bench.problems.capture.Trajectory`: ball start, contact height): a closed-loop
+   PD law on the ball position drives it to the near face of the cube, then pushes forward
+   and up, for ``duration`` seconds; state, input, ball-cube distance and the set of touching
+   contacts are recorded every ``dt``.
+2. **States** of each push (:func:`choose_states`): ``contact_change_states`` of them where the
+   set of touching contacts changes (ball reaches the cube, a corner lifts off), the rest
+   evenly (``numpy.linspace`` over step indices) among the steps where the ball is within
+   ``contact_band`` of the cube, so the subproblems are contact-rich. The manifest records each
+   state's trajectory, ball start, step, time and reason.
 3. **Instances** of every family are built at each sampled state from the controller's model
-   (``model_l``, the reference study's shrunk 0.29 cube) linearised at that state.
+   (``model_l``, the reference study's shrunk 0.29 cube) linearised at that state; the QP steps
+   in both variants (``bounded`` with the cube's limits,
+   :func:`c3bench.problems.limits.cube_limits`, and ``equality``), the ``mpcc`` with the same
+   limits.
 
 A suite is written into a hidden sibling folder and swapped in whole when complete, so a
 directory never mixes instances of two generations and an interrupted generation leaves the
@@ -46,6 +53,7 @@ from c3bench.problems.capture import (
     Capture,
     CaptureContext,
     SuiteSpec,
+    Trajectory,
     provisional_capture,
 )
 from c3bench.problems.config import Config, load_config
@@ -57,9 +65,10 @@ from c3bench.problems.instance import (
     atomic_write_bytes,
     save_problem,
 )
+from c3bench.problems.limits import Limits, cube_limits
 from c3bench.problems.linearize import contact_frames, linearize
-from c3bench.problems.mpc import HorizonLayout
-from c3bench.problems.names import Block, Family, Precision, Variant
+from c3bench.problems.mpc import MPC, HorizonLayout, with_limits
+from c3bench.problems.names import Block, Family, Precision, QPVariant, Variant
 from c3bench.problems.scene import (
     Plant,
     Scene,
@@ -69,27 +78,36 @@ from c3bench.problems.scene import (
     home_state,
 )
 
+CONTACT_THRESHOLD = 1e-3
+"""Gap (m) below which a contact counts as touching when finding contact changes."""
+
 
 @dataclass
 class PushRecord:
-    """States (steps+1 x nx) and inputs (steps x nu) of the scripted push, every ``dt``."""
+    """States (steps+1 x nx) and inputs (steps x nu) of the scripted push, every ``dt``;
+    the ball-cube distance and the touching contacts (steps x contacts, ``phi <=``
+    :data:`CONTACT_THRESHOLD`) at each recorded state before its input."""
 
     states: np.ndarray
     inputs: np.ndarray
     ball_distance: np.ndarray
     dt: float
+    touching: np.ndarray | None = None
 
 
 def scripted_push(config: Config | None = None, duration: float = 1.5,
-                  variant: str = "planar") -> PushRecord:
+                  variant: str = "planar", ball_start: tuple[float, float] | None = None,
+                  push_height: float = 0.75) -> PushRecord:
     """Push the true cube with a PD law on the ball and record every ``dt``.
 
     Waypoints (relative to the cube's initial centre): approach
-    ``(-l/2 - r + 0.005, 0.75 l)`` (just inside the near face) for 0.4 s, then move the ball
-    target forward at 0.2 m/s and up at 0.1 m/s. Force ``u = 100 (p_target - p) - 20 v``,
-    clipped to the force limit.
+    ``(-l/2 - r + 0.005, push_height l)`` (just inside the near face) for 0.4 s, then move the
+    ball target forward at 0.2 m/s and up at 0.1 m/s. Force ``u = 100 (p_target - p) - 20 v``,
+    clipped to the force limit. ``ball_start`` replaces the config's initial ball centre.
     """
     cfg = config or load_config()
+    if ball_start is not None:
+        cfg = cfg.with_scene(ball_start=tuple(ball_start))
     plant_scene = build_scene(variant=check_variant(variant), config=cfg)
     plant = Plant(plant_scene)
     x = home_state(plant_scene)
@@ -100,8 +118,8 @@ def scripted_push(config: Config | None = None, duration: float = 1.5,
     ball = plant_scene.ball_position_indices
     approach = np.zeros(len(ball))
     approach[0] = -l / 2 - r + 0.005
-    approach[-1] = 0.75 * l
-    states, inputs, distances = [x], [], []
+    approach[-1] = push_height * l
+    states, inputs, distances, touching = [x], [], [], []
     limit = cfg.scene.force_limit
     for k in range(steps):
         t = k * dt
@@ -112,19 +130,22 @@ def scripted_push(config: Config | None = None, duration: float = 1.5,
         position = x[ball]
         velocity = x[plant_scene.nq + ball - (plant_scene.nq - plant_scene.nv)]
         u = np.clip(100.0 * (target - position) - 20.0 * velocity, -limit, limit)
-        distances.append(_ball_distance(plant_scene, x))
+        phi = _contact_gaps(plant_scene, x)
+        distances.append(float(phi[-1]))
+        touching.append(phi <= CONTACT_THRESHOLD)
         x = plant.step(u, dt)
         states.append(x)
         inputs.append(u)
-    return PushRecord(np.array(states), np.array(inputs), np.array(distances), dt)
+    return PushRecord(np.array(states), np.array(inputs), np.array(distances), dt,
+                      np.array(touching))
 
 
-def _ball_distance(scene: Scene, x: np.ndarray) -> float:
-    """Signed ball-cube distance at state ``x``."""
+def _contact_gaps(scene: Scene, x: np.ndarray) -> np.ndarray:
+    """Gaps ``phi`` of every contact at state ``x`` (the ball-cube distance last)."""
     scene.data.qpos[:] = x[: scene.nq]
     mujoco.mj_kinematics(scene.model, scene.data)
     mujoco.mj_comPos(scene.model, scene.data)
-    return float(contact_frames(scene).phi[-1])
+    return np.array(contact_frames(scene).phi, dtype=float)
 
 
 def sample_states(record: PushRecord, n_states: int, band: float) -> list[int]:
@@ -138,6 +159,51 @@ def sample_states(record: PushRecord, n_states: int, band: float) -> list[int]:
     return sorted({int(candidates[i]) for i in picks})
 
 
+CONTACT_CHANGE = "contact_change"
+"""Reason of a state taken where the set of touching contacts changes."""
+CONTACT_BAND = "contact_band"
+"""Reason of a state taken evenly among the steps with the ball near the cube."""
+
+
+def contact_changes(record: PushRecord) -> np.ndarray:
+    """Step indices ``k >= 1`` whose touching contacts differ from step ``k - 1``'s."""
+    if record.touching is None or len(record.touching) < 2:
+        return np.zeros(0, dtype=int)
+    differ = np.any(record.touching[1:] != record.touching[:-1], axis=1)
+    return np.flatnonzero(differ) + 1
+
+
+def _even(pool: np.ndarray, count: int) -> list[int]:
+    """``count`` distinct entries of ``pool`` spread evenly (all of it when shorter)."""
+    if count <= 0 or pool.size == 0:
+        return []
+    if pool.size <= count:
+        return [int(i) for i in pool]
+    picks = np.linspace(0, pool.size - 1, count).round().astype(int)
+    return [int(pool[i]) for i in picks]
+
+
+def choose_states(record: PushRecord, n_states: int, band: float,
+                  n_changes: int = 0) -> list[tuple[int, str]]:
+    """``(step index, reason)`` of the states sampled from one push, by step.
+
+    Up to ``n_changes`` steps evenly among the contact changes (:func:`contact_changes`,
+    reason :data:`CONTACT_CHANGE`), the rest evenly among the other steps with the ball within
+    ``band`` of the cube (:data:`CONTACT_BAND`; every step when none is).
+    """
+    if n_states < 1:
+        raise ValueError(f"n_states must be >= 1, got {n_states}")
+    chosen = {k: CONTACT_CHANGE for k in _even(contact_changes(record), min(n_changes,
+                                                                          n_states))}
+    near = np.flatnonzero(record.ball_distance <= band)
+    if near.size == 0:
+        near = np.arange(record.inputs.shape[0])
+    rest = np.array([k for k in near if k not in chosen], dtype=int)
+    for k in _even(rest, n_states - len(chosen)):
+        chosen[k] = CONTACT_BAND
+    return sorted(chosen.items())
+
+
 def _c3_columns(layout: HorizonLayout) -> np.ndarray:
     """Columns of a C3+ step vector that C3's QP keeps (everything but eta)."""
     keep = np.ones(layout.step_size, dtype=bool)
@@ -145,26 +211,51 @@ def _c3_columns(layout: HorizonLayout) -> np.ndarray:
     return keep
 
 
+def qp_limits(mpc: MPC) -> Limits:
+    """The bounded QP step's limits: ``mpc.limits``, or ``|u| <= force_limit`` without them."""
+    return mpc.limits if mpc.limits is not None else Limits.force_only(mpc.nx, mpc.nu,
+                                                                        mpc.force_limit)
+
+
+def _qp_steps(context: CaptureContext, iteration: int, rho: dict[str, float],
+              delta: np.ndarray, w: np.ndarray, meta: dict[str, Any], tag: str) -> list[Problem]:
+    """The QP steps of one ADMM iterate, every family at every variant of the suite."""
+    lcs, mpc = context.lcs, context.mpc
+    keep = _c3_columns(HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, mpc.horizon))
+    c3_rho = {k: v for k, v in rho.items() if k != Block.ETA}
+    problems = []
+    for variant in context.spec.qp_variants:
+        limits = qp_limits(mpc) if variant == QPVariant.BOUNDED else None
+        for family, weights, d, ww in ((Family.C3PLUS_QP, rho, delta, w),
+                                       (Family.C3_QP, c3_rho, delta[:, keep], w[:, keep])):
+            problems.append(families.consensus_qp(
+                family, f"{family}-{variant}-{tag}-i{iteration:02d}", lcs, mpc, context.x0,
+                weights, d, ww, meta=meta, limits=limits))
+    return problems
+
+
 def build_state_instances(context: CaptureContext, capture: Capture) -> list[Problem]:
-    """Every family's instances at one sampled state."""
+    """Every family's instances at one sampled state.
+
+    QP steps at the state's ADMM iterations (:meth:`SuiteSpec.iterations_at`) in every variant
+    of ``spec.qp_variants``; projections at its projection iterations and
+    ``spec.projection_steps``; the ``mpcc`` (bounded by :func:`qp_limits`) when
+    ``context.with_mpcc``; the ``lcp``.
+    """
     spec, lcs, mpc = context.spec, context.lcs, context.mpc
     layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, mpc.horizon)
-    keep = _c3_columns(layout)
-    tag = f"s{context.state_index:03d}"
+    tag = f"s{context.state_index:03d}t{context.trajectory}"
+    qp_iterations = spec.iterations_at(context.position)
+    projection_iterations = spec.iterations_at(context.position, projection=True)
     problems: list[Problem] = []
     for iterate in capture(context):
         meta = dict(context.base_meta)
         meta.update({"admm_iteration": iterate.iteration, "rho": iterate.rho,
                      "capture": iterate.source})
-        if iterate.iteration in spec.admm_iterations:
-            problems.append(families.consensus_qp(
-                Family.C3PLUS_QP, f"{Family.C3PLUS_QP}-{tag}-i{iterate.iteration:02d}", lcs, mpc,
-                context.x0, iterate.rho, iterate.delta, iterate.w, meta=meta))
-            c3_rho = {k: v for k, v in iterate.rho.items() if k != Block.ETA}
-            problems.append(families.consensus_qp(
-                Family.C3_QP, f"{Family.C3_QP}-{tag}-i{iterate.iteration:02d}", lcs, mpc,
-                context.x0, c3_rho, iterate.delta[:, keep], iterate.w[:, keep], meta=meta))
-        if iterate.iteration in spec.projection_iterations:
+        if iterate.iteration in qp_iterations:
+            problems.extend(_qp_steps(context, iterate.iteration, iterate.rho, iterate.delta,
+                                      iterate.w, meta, tag))
+        if iterate.iteration in projection_iterations:
             weights = families.weight_vector(HorizonLayout(lcs.nx, lcs.nlam, lcs.nu,
                                                            lcs.nlam, 1), iterate.rho)
             for step in spec.projection_steps:
@@ -178,7 +269,9 @@ def build_state_instances(context: CaptureContext, capture: Capture) -> list[Pro
                         f"{Family.PROJECTION}-{variant}-{tag}-i{iterate.iteration:02d}-k{k}", lcs,
                         iterate.projection_v[k], U, variant, meta=step_meta))
     meta = dict(context.base_meta)
-    problems.append(families.mpcc(f"{Family.MPCC}-{tag}", lcs, mpc, context.x0, meta=meta))
+    if context.with_mpcc:
+        problems.append(families.mpcc(f"{Family.MPCC}-{tag}", lcs, mpc, context.x0, meta=meta,
+                                      limits=qp_limits(mpc)))
     problems.append(families.lcp(f"{Family.LCP}-{tag}", lcs, context.x0, context.u_prev, meta=meta))
     return problems
 
@@ -222,37 +315,70 @@ def generate_suite(
     return [out / path.relative_to(staging) for path in written]
 
 
+def _trajectory_json(index: int, trajectory: Trajectory, cfg: Config) -> dict[str, Any]:
+    """How a push was run, for the manifest and the instances' metadata."""
+    start = trajectory.ball_start or cfg.scene.ball_start
+    return {"trajectory": index, "kind": "scripted_pd_push",
+            "ball_start": [float(v) for v in start], "push_height": trajectory.push_height}
+
+
 def _write_suite(spec: SuiteSpec, out: Path, cfg: Config, capture: Capture,
                  progress: bool) -> list[Path]:
     """Write every instance and the manifest of ``spec`` into ``out``."""
-    record = scripted_push(cfg, spec.duration, spec.variant)
-    indices = sample_states(record, spec.n_states, spec.contact_band)
     model_scene = build_scene(l=spec.model_l, variant=check_variant(spec.variant), config=cfg)
-    mpc = build_mpc(model_scene, cfg.mpc)
+    mpc = with_limits(build_mpc(model_scene, cfg.mpc), cube_limits(model_scene))
+    states: list[tuple[int, Trajectory, PushRecord, int, str]] = []
+    for t, trajectory in enumerate(spec.trajectories):
+        record = scripted_push(cfg, spec.duration, spec.variant, trajectory.ball_start,
+                               trajectory.push_height)
+        picks = choose_states(record, spec.n_states, spec.contact_band,
+                              spec.contact_change_states)
+        states.extend((t, trajectory, record, index, reason) for index, reason in picks)
     written: list[Path] = []
     counts: dict[str, int] = {}
-    iterator: Iterable[int] = indices
+    variant_counts: dict[str, int] = {}
+    chosen: list[dict[str, Any]] = []
+    mpccs: dict[int, int] = {}
+    iterator: Iterable[int] = range(len(states))
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(indices, desc=f"generating {spec.name}", unit="state")
-    for index in iterator:
+        iterator = tqdm(iterator, desc=f"generating {spec.name}", unit="state")
+    for position in iterator:
+        t, trajectory, record, index, reason = states[position]
         x0, u_prev = record.states[index], record.inputs[max(index - 1, 0)]
         lcs = linearize(model_scene, x0, u_prev, cfg.mpc.dt)
+        how = dict(_trajectory_json(t, trajectory, cfg), state_index=index,
+                   time=round(index * cfg.mpc.dt, 10), reason=reason,
+                   tag=f"s{index:03d}t{t}")
+        chosen.append(how)
         base_meta: dict[str, Any] = {
             "suite": spec.name, "scene": spec.variant, "l": spec.model_l,
             "l_plant": cfg.scene.cube_side, "dt": cfg.mpc.dt, "T": cfg.mpc.horizon,
-            "state_index": index, "time": round(index * cfg.mpc.dt, 10),
+            "state_index": index, "time": how["time"], "trajectory": t,
+            "ball_start": how["ball_start"], "state_reason": reason,
             "seed": spec.seed, "precision": Precision.FLOAT64, "contact_model": lcs.contact_model,
             "target_angle": cfg.mpc.target_angle,
         }
+        with_mpcc = (spec.mpcc_per_trajectory == 0 or mpccs.get(t, 0) < spec.mpcc_per_trajectory) \
+            and (spec.mpcc_trajectories == 0 or t < spec.mpcc_trajectories)
+        mpccs[t] = mpccs.get(t, 0) + int(with_mpcc)
         context = CaptureContext(spec, index, x0, u_prev, lcs, mpc, model_scene,
-                                 np.random.default_rng([spec.seed, index]), base_meta)
+                                 np.random.default_rng([spec.seed, t, index]), base_meta,
+                                 position=position, trajectory=t, with_mpcc=with_mpcc)
         for problem in build_state_instances(context, capture):
             written.append(save_problem(problem, out / problem.family))
             counts[problem.family] = counts.get(problem.family, 0) + 1
-    manifest = {"suite": asdict(spec), "states": indices, "counts": dict(sorted(counts.items())),
-                "config": {"scene": asdict(cfg.scene), "mpc": asdict(cfg.mpc)}}
+            key = f"{problem.family}/{problem.meta.get('variant', '')}".rstrip("/")
+            variant_counts[key] = variant_counts.get(key, 0) + 1
+    assert mpc.limits is not None
+    manifest = {"suite": asdict(spec), "states": chosen, "counts": dict(sorted(counts.items())),
+                "counts_by_variant": dict(sorted(variant_counts.items())),
+                "trajectories": [_trajectory_json(t, trajectory, cfg)
+                                 for t, trajectory in enumerate(spec.trajectories)],
+                "limits": mpc.limits.to_json(),
+                "config": {"scene": asdict(cfg.scene), "mpc": asdict(cfg.mpc),
+                           "limits": asdict(cfg.limits)}}
     atomic_write_bytes(out / MANIFEST,
                        (json.dumps(manifest, indent=2, sort_keys=True) + "\n").encode())
     return written

@@ -41,7 +41,7 @@ def small_mpccs() -> dict[str, Problem]:
     ``h<horizon>-<state position>``."""
     cfg = load_config()
     record = scripted_push(cfg, 1.5)
-    scene = build_scene(l=0.29, config=cfg)
+    scene = build_scene(l=0.29, config=cfg, ball_table=False)  # 3 contacts: enumerable
     base = build_mpc(scene, cfg.mpc)
     out: dict[str, Problem] = {}
     for position, index in enumerate(sample_states(record, 2, 0.02)):
@@ -71,3 +71,13 @@ def enumerated_optimum(problem: Problem) -> float:
     if problem.name not in _OPTIMA:
         _OPTIMA[problem.name] = enumerate_modes(problem)[1]
     return _OPTIMA[problem.name]
+
+
+@pytest.fixture(autouse=True)
+def _forget_plugins_loaded_by_the_test(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A plugin a test loads from its own temporary folder would be handed to every later
+    isolated solve (whose child then cannot import it): each test starts from the plugins
+    loaded before it and forgets its own."""
+    from c3bench.solvers import registry
+
+    monkeypatch.setattr(registry, "_PLUGINS_LOADED", dict(registry._PLUGINS_LOADED))

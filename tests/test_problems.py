@@ -257,12 +257,13 @@ def test_quick_suite_contents(quick_dir: Path) -> None:
     manifest = json.loads((quick_dir / "manifest.json").read_text())
     spec = SUITES["quick"]
     states = len(manifest["states"])
+    per = spec.iterations_per_state or len(spec.admm_iterations)
+    proj = spec.projection_iterations_per_state or len(spec.projection_iterations)
+    qps = states * per * len(spec.qp_variants)
     assert manifest["counts"] == {
-        "c3_qp": states * len(spec.admm_iterations),
-        "c3plus_qp": states * len(spec.admm_iterations),
-        "lcp": states, "mpcc": states,
-        "projection": states * len(spec.projection_iterations)
-        * len(spec.projection_steps) * 2,
+        "c3_qp": qps, "c3plus_qp": qps, "lcp": states,
+        "mpcc": spec.mpcc_per_trajectory * (spec.mpcc_trajectories or len(spec.trajectories)),
+        "projection": states * proj * len(spec.projection_steps) * 2,
     }
     problems = load_instances(quick_dir, families=("c3plus_qp",))
     for problem in problems:
