@@ -103,11 +103,13 @@ def settings_for(profile: str, **changes: Any) -> Settings:
 
 @dataclass
 class WarmStart:
-    """An initial guess: primal ``x`` and, where known, duals ``y`` and ``z``."""
+    """An initial guess: primal ``x`` and, where known, duals ``y``, ``z`` and the box duals
+    ``z_box`` (the sign convention of :class:`Result`)."""
 
     x: np.ndarray | None = None
     y: np.ndarray | None = None
     z: np.ndarray | None = None
+    z_box: np.ndarray | None = None
 
 
 @dataclass
@@ -202,6 +204,9 @@ class Backend:
     package: str = ""
     precisions: tuple[Precision, ...] = (Precision.FLOAT64,)
     description: str = ""
+    warm_support: str = ""
+    """What a warm cell measures for this backend (:mod:`c3bench.solvers.timing`): its own
+    update API, or "" (a full solve: the warm cell is emulated)."""
 
     def require(self) -> None:
         """Raise :class:`BackendUnavailable` when the backend cannot run in this process.

@@ -111,8 +111,8 @@ import math
 import time
 from collections import OrderedDict
 from collections.abc import Hashable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -121,7 +121,31 @@ from c3bench.problems.instance import Problem
 from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC, HorizonLayout
 from c3bench.problems.names import BLOCKS, Block, Precision, Variant
-from c3bench.solvers.c3 import C3Options, rho_multiplier
+from c3bench.solvers.admm.controller import FastC3PlusController, solve_batched
+from c3bench.solvers.admm.kernel import KernelFailure, StepInputs
+from c3bench.solvers.admm.loop import cold_iterates, shift_warm_start
+from c3bench.solvers.admm.options import C3Options
+from c3bench.solvers.admm.projection import make_step_projection
+from c3bench.solvers.admm.schedules import schedule_for
+from c3bench.solvers.admm.solution import FastSolution, FastTimings
+from c3bench.solvers.admm.stacked import box_of_step, projection_weight_vector
+
+__all__ = [
+    "FactorCache",
+    "FastC3Plus",
+    "FastC3PlusController",
+    "FastSolution",
+    "FastTimings",
+    "RiccatiFactor",
+    "RiccatiOptions",
+    "factorize",
+    "fast_options",
+    "shift_warm",
+    "solve_c3plus_qp",
+    "solve_lq",
+]
+
+shift_warm = shift_warm_start
 
 
 # --- options, factor, cache -------------------------------------------------------------------
@@ -597,87 +621,15 @@ def solve_c3plus_qp(problem: Problem, options: RiccatiOptions | None = None
 # --- batched C3+ ADMM -------------------------------------------------------------------------
 def project_c3plus_batch(v: np.ndarray, nx: int, nlam: int, nu: int, rho_lam: float,
                          rho_eta: float) -> np.ndarray:
-    """C3+'s projection of steps ``v`` (..., ns) in closed form (no validation; any dtype).
+    """C3+'s projection of steps ``v`` (..., ns) with scalar weights (no validation; any dtype).
 
-    ``x``, ``u`` copied; per pair keep ``lam`` iff ``sqrt(rho_lam) [v_lam]_+ >=
-    sqrt(rho_eta) [v_eta]_+`` (then ``(lam, eta) = ([v_lam]_+, 0)``, else ``(0,
-    [v_eta]_+)``), as :func:`solvers.projection.c3plus_projection`.
+    :func:`c3bench.solvers.admm.projection.make_step_projection` without limits or shared inputs.
     """
-    out = v.copy()
-    lam_s = slice(nx, nx + nlam)
-    eta_s = slice(nx + nlam + nu, nx + 2 * nlam + nu)
-    a = np.maximum(v[..., lam_s], 0)
-    b = np.maximum(v[..., eta_s], 0)
-    keep = math.sqrt(rho_lam) * a >= math.sqrt(rho_eta) * b
-    out[..., lam_s] = np.where(keep, a, 0)
-    out[..., eta_s] = np.where(keep, 0, b)
+    project = make_step_projection(np, nx, nlam, nu)
+    inf = np.full(nx + nu, np.inf, dtype=v.dtype)
+    out: np.ndarray = project(v, np.sqrt(v.dtype.type(rho_lam)), np.sqrt(v.dtype.type(rho_eta)),
+                              -inf, inf, None, False)
     return out
-
-
-@dataclass
-class FastTimings:
-    """Seconds spent in one :meth:`FastC3Plus.solve` (wall clock, ``time.perf_counter``).
-
-    ``factor`` (Riccati factorisations, cache misses only), ``qp_solve`` (gradients, linear
-    passes, ``eta``), ``projection`` (projection and the shared-input mean), ``total`` (the
-    whole call); ``qp = factor + qp_solve``; everything else is ``overhead``.
-    """
-
-    factor: float = 0.0
-    qp_solve: float = 0.0
-    projection: float = 0.0
-    total: float = 0.0
-
-    @property
-    def qp(self) -> float:
-        return self.factor + self.qp_solve
-
-    @property
-    def overhead(self) -> float:
-        return max(self.total - self.qp - self.projection, 0.0)
-
-
-@dataclass
-class FastSolution:
-    """Outcome of one batched C3+ control step.
-
-    Attributes
-    ----------
-    u, u_raw
-        Input to apply (clipped; per sample (n, nu) when inputs are not shared) and before
-        clipping (``None`` when failed).
-    ok, status, iterations
-        As :class:`solvers.c3.C3Solution`.
-    delta, w, z_steps, z_terminal
-        (n, T, ns), (n, T, ns), (n, T, ns), (n, nx) in the working precision.
-    rho
-        Weights of the last iteration's QP.
-    weights
-        Sample weights (sum 1).
-    consensus_residual, dual_residual
-        Per iteration (weighted over samples), when recorded (else empty).
-    cache_hits, cache_misses
-        Factorisation cache counts during this call.
-    timings
-        :class:`FastTimings`.
-    """
-
-    u: np.ndarray
-    u_raw: np.ndarray | None
-    ok: bool
-    status: str
-    iterations: int
-    delta: np.ndarray
-    w: np.ndarray
-    z_steps: np.ndarray | None
-    z_terminal: np.ndarray | None
-    rho: dict[str, float]
-    weights: np.ndarray
-    consensus_residual: list[float] = field(default_factory=list)
-    dual_residual: list[float] = field(default_factory=list)
-    cache_hits: int = 0
-    cache_misses: int = 0
-    timings: FastTimings = field(default_factory=FastTimings)
 
 
 @dataclass
@@ -731,7 +683,8 @@ class FastC3Plus:
         if options.variant != Variant.C3PLUS:
             raise ValueError("FastC3Plus runs the c3plus variant only")
         if options.input_bounds:
-            raise ValueError("FastC3Plus does not take input bounds in the QP step")
+            raise ValueError("FastC3Plus does not take input bounds in the QP step (the box "
+                             "limits of mpc.limits go into its projection)")
         self.mpc = mpc
         self.options = options
         self.riccati = riccati or RiccatiOptions()
@@ -751,6 +704,9 @@ class FastC3Plus:
         self._PT = (2 * Qf).astype(dtype)
         self._gx = (-2 * Q @ mpc.x_target).astype(dtype)
         self._gT = (-2 * Qf @ mpc.x_target).astype(dtype)
+        self.timings = FastTimings()
+        self.info: dict[str, Any] = {}
+        self._hits0 = self._misses0 = 0
 
     # -- per LCS / per rho ---------------------------------------------------------------------
     def prepare(self, lcs: LCSBatch) -> _Prepared:
@@ -824,21 +780,11 @@ class FastC3Plus:
         return [entry for entry in out if entry is not None]
 
     def planned_rhos(self) -> list[dict[str, float]] | None:
-        """Every iteration's rho when the schedule does not depend on the data (geometric),
-        computed with the same arithmetic as the ADMM loop; ``None`` otherwise."""
-        options = self.options
-        if options.rho_schedule != "geometric":
-            return None
-        rho = dict(options.rho0)
-        plan = []
-        for _ in range(options.admm_iterations):
-            plan.append(dict(rho))
-            factor = float(options.rho_factor)
-            rho = {key: value * factor if key in options.rho_blocks else value
-                   for key, value in rho.items()}
-        return plan
+        """Every iteration's rho when the schedule does not depend on the data (geometric)."""
+        return schedule_for(self.options).plan(self.options.rho0, self.options.admm_iterations)
 
-    def layout(self, lcs: LCSBatch) -> HorizonLayout:
+    def layout_of(self, lcs: LCSBatch) -> HorizonLayout:
+        """The C3+ step layout ``(x, lam, u, eta)`` of ``lcs``."""
         return HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, self.mpc.horizon)
 
     def qp_step(self, lcs: LCSBatch, rho: Mapping[str, float], x0: np.ndarray,
@@ -878,19 +824,87 @@ class FastC3Plus:
             self._vectors[key] = out
         return out
 
-    # -- the ADMM ------------------------------------------------------------------------------
+    # -- the kernel of the one ADMM (solvers/admm/loop.py) -----------------------------------
+    name = "riccati"
+
+    @property
+    def dtype(self) -> Any:
+        return self.riccati.dtype
+
+    def bind(self, lcs: LCSBatch) -> None:
+        """Use ``lcs`` for the next control step (:func:`solvers.admm.solve_batched`)."""
+        self.lcs = lcs
+        self.layout = self.layout_of(lcs)
+        self._project = make_step_projection(np, lcs.nx, lcs.nlam, lcs.nu)
+
+    def start(self, inputs: StepInputs) -> None:
+        """Per step: working-precision data, the box, and the planned factorisations."""
+        lcs = self.lcs
+        self.info = {}
+        self._hits0, self._misses0 = self.cache.hits, self.cache.misses
+        self._prepared_step = self.prepare(lcs)
+        x0 = np.asarray(inputs.x0, dtype=np.float64)
+        if not np.all(np.isfinite(x0)):
+            raise KernelFailure("invalid input", "x0 has non-finite entries", True)
+        self._x0 = x0.astype(self.dtype)
+        self._p = np.asarray(inputs.weights).astype(self.dtype)
+        self._shared = bool(inputs.shared_inputs and lcs.n_samples > 1)
+        lower, upper = box_of_step(self.mpc, self.layout, self.options.use_limits)
+        self._lower, self._upper = lower.astype(self.dtype), upper.astype(self.dtype)
+        self._planned: dict[tuple[float, ...], RiccatiFactor] = {}
+        plan = inputs.plan if self.prefactorize else None
+        if plan:
+            t0 = time.perf_counter()
+            try:
+                factors = self.factors(lcs, plan)
+            except np.linalg.LinAlgError:
+                factors = []  # factorise one by one to find the failing iteration
+            for rho, (factor, _) in zip(plan, factors, strict=False):
+                self._planned[tuple(float(rho[k]) for k in BLOCKS)] = factor
+            self.timings.factor += time.perf_counter() - t0
+
+    @property
+    def step_cache_hits(self) -> int:
+        return self.cache.hits - self._hits0
+
+    @property
+    def step_cache_misses(self) -> int:
+        return self.cache.misses - self._misses0
+
+    def iterate(self, rho: Mapping[str, float], delta: np.ndarray, w: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """QP step by the Riccati recursion, then the projection (box, pairs, shared mean)."""
+        t0 = time.perf_counter()
+        key = tuple(float(rho[k]) for k in BLOCKS)
+        factor = self._planned.get(key)
+        if factor is None:
+            try:
+                factor, _ = self.factor(self.lcs, rho)
+            except np.linalg.LinAlgError as error:
+                raise KernelFailure("QP factorisation failed", str(error)) from None
+        t1 = time.perf_counter()
+        steps, terminal = self._qp_solve(self._prepared_step, factor, rho, self._x0, delta, w)
+        t2 = time.perf_counter()
+        self.timings.factor += t1 - t0
+        self.timings.qp_solve += t2 - t1
+        if not (math.isfinite(float(steps.sum())) and math.isfinite(float(terminal.sum()))):
+            raise KernelFailure("non-finite QP solution", "", True)
+        U = projection_weight_vector(self.options, self.layout, rho).astype(self.dtype)
+        lam_s, eta_s = self.layout.index(0, Block.LAM), self.layout.index(0, Block.ETA)
+        new_delta = self._project(steps + w, np.sqrt(U[lam_s]), np.sqrt(U[eta_s]), self._lower,
+                                  self._upper, self._p, self._shared)
+        self.timings.projection += time.perf_counter() - t2
+        return steps, terminal, new_delta
+
     def cold_start(self, lcs: LCSBatch, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``delta_k = (x0, 0, 0, 0)``, ``w = 0`` for every sample: (n, T, ns) each."""
-        layout = self.layout(lcs)
-        delta = np.zeros((lcs.n_samples, layout.horizon, layout.step_size),
-                         dtype=self.riccati.dtype)
-        delta[:, :, :self.nx] = np.asarray(x0, dtype=self.riccati.dtype)
-        return delta, np.zeros_like(delta)
+        return cold_iterates(self.layout_of(lcs), np.asarray(x0, dtype=float), lcs.n_samples,
+                             self.dtype)
 
     def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
               delta: np.ndarray | None = None, w: np.ndarray | None = None,
               fallback_input: np.ndarray | None = None) -> FastSolution:
-        """One control step (module docstring, "ADMM").
+        """One control step of the one ADMM (:func:`c3bench.solvers.admm.solve_batched`).
 
         Parameters
         ----------
@@ -899,226 +913,14 @@ class FastC3Plus:
         x0
             Measured state (nx,).
         weights
-            Sample weights (normalised, floored like :func:`solvers.c3.solve_robust`);
-            uniform when ``None``.
+            Sample weights (normalised and floored); uniform when ``None``.
         delta, w
             Initial iterates (n, T, ns) or (T, ns); cold start when ``None``.
         fallback_input
             Returned with ``ok=False`` when the step fails (zero when ``None``).
         """
-        started = time.perf_counter()
-        timings = FastTimings()
-        hits0, misses0 = self.cache.hits, self.cache.misses
-        options = self.options
-        dtype = self.riccati.dtype
-        n = lcs.n_samples
-        x0 = np.asarray(x0, dtype=np.float64)
-        fallback = np.zeros(self.nu) if fallback_input is None else \
-            np.asarray(fallback_input, dtype=float)
-        p = self._weights(weights, n)
-        p_work = p.astype(dtype)
-        cold_delta, cold_w = self.cold_start(lcs, x0)
-        delta = cold_delta if delta is None else self._initial("delta", delta, cold_delta)
-        w = cold_w if w is None else self._initial("w", w, cold_w)
-        prepared = self.prepare(lcs)
-        layout = self.layout(lcs)
-        nx, nlam, nu = self.nx, lcs.nlam, self.nu
-        u_s = slice(nx + nlam, nx + nlam + nu)
-        need_residuals = (self.record_residuals or options.rho_schedule != "geometric"
-                          or options.stopping == "residual")
-        rho = dict(options.rho0)
-        rho_used = dict(rho)
-        consensus_prev: float | None = None
-        consensus_series: list[float] = []
-        dual_series: list[float] = []
-        z_steps: np.ndarray | None = None
-        z_terminal: np.ndarray | None = None
-        ok, completed = True, 0
-        status = f"{options.admm_iterations} iterations"
-        x0_work = x0.astype(dtype)
-        plan = self.planned_rhos() if self.prefactorize else None
-        planned: list[tuple[RiccatiFactor, bool]] = []
-        if plan is not None:
-            t0 = time.perf_counter()
-            try:
-                planned = self.factors(lcs, plan)
-            except np.linalg.LinAlgError:
-                plan, planned = None, []  # factorise one by one to find the iteration
-            timings.factor += time.perf_counter() - t0
-        for i in range(options.admm_iterations):
-            rho_used = dict(rho)
-            t0 = time.perf_counter()
-            try:
-                if plan is not None and plan[i] == rho:
-                    factor = planned[i][0]
-                else:
-                    factor, _ = self.factor(lcs, rho)
-            except np.linalg.LinAlgError as error:
-                status, ok = f"QP factorisation failed at iteration {i}: {error}", False
-                break
-            t1 = time.perf_counter()
-            steps_i, terminal_i = self._qp_solve(prepared, factor, rho, x0_work, delta, w)
-            t2 = time.perf_counter()
-            timings.factor += t1 - t0
-            timings.qp_solve += t2 - t1
-            if not (math.isfinite(float(steps_i.sum())) and
-                    math.isfinite(float(terminal_i.sum()))):
-                status, ok = f"non-finite QP solution at iteration {i}", False
-                break
-            v = steps_i + w
-            new_delta = project_c3plus_batch(v, nx, nlam, nu, rho[Block.LAM], rho[Block.ETA])
-            if self.shared_inputs and n > 1:
-                new_delta[:, :, u_s] = np.tensordot(p_work, v[:, :, u_s], axes=(0, 0))
-            timings.projection += time.perf_counter() - t2
-            difference = steps_i - new_delta
-            new_w = w + difference
-            consensus = dual = math.nan
-            if need_residuals:
-                G = self._weight_vector(layout, rho)
-                consensus = _weighted_norm(difference, p)
-                dual = _weighted_norm(2.0 * G * (new_delta - delta), p)
-                consensus_series.append(consensus)
-                dual_series.append(dual)
-            delta, w, z_steps, z_terminal = new_delta, new_w, steps_i, terminal_i
-            completed = i + 1
-            if options.stopping == "residual":
-                size = layout.step_size * layout.horizon
-                eps_pri = math.sqrt(size) * options.eps_abs + options.eps_rel * max(
-                    _weighted_norm(steps_i, p), _weighted_norm(new_delta, p))
-                eps_dual = math.sqrt(size) * options.eps_abs + options.eps_rel * \
-                    _weighted_norm(2.0 * self._weight_vector(layout, rho) * new_w, p)
-                if consensus <= eps_pri and dual <= eps_dual:
-                    status = f"converged in {completed} iterations"
-                    break
-            if i + 1 < options.admm_iterations:
-                factor_rho = rho_multiplier(options, consensus, consensus_prev, dual)
-                if factor_rho != 1.0:
-                    updated = {key: value * factor_rho if key in options.rho_blocks else value
-                               for key, value in rho.items()}
-                    if options.rescale_dual:
-                        ratio = self._weight_vector(layout, rho) / \
-                            self._weight_vector(layout, updated)
-                        w = w * ratio.astype(dtype)
-                    rho = updated
-            consensus_prev = consensus
-        else:
-            if options.stopping == "residual":
-                status = f"iteration limit {options.admm_iterations} reached"
-        u_raw: np.ndarray | None = None
-        u = fallback.copy()
-        if ok and z_steps is not None:
-            if options.output == "delta":
-                first = delta[:, 0, u_s].astype(np.float64)
-            else:
-                first = z_steps[:, 0, u_s].astype(np.float64)
-            u_raw = p @ first if self.shared_inputs else first
-            if np.all(np.isfinite(u_raw)):
-                limit = float(self.mpc.force_limit)
-                u = np.clip(u_raw, -limit, limit)
-            else:
-                ok, status, u_raw = False, "non-finite input", None
-        timings.total = time.perf_counter() - started
-        return FastSolution(u=u, u_raw=u_raw, ok=ok, status=status, iterations=completed,
-                            delta=delta, w=w, z_steps=z_steps, z_terminal=z_terminal,
-                            rho=rho_used, weights=p, consensus_residual=consensus_series,
-                            dual_residual=dual_series, cache_hits=self.cache.hits - hits0,
-                            cache_misses=self.cache.misses - misses0, timings=timings)
-
-    def _weights(self, weights: Sequence[float] | None, n: int) -> np.ndarray:
-        if weights is None:
-            return np.full(n, 1.0 / n)
-        array = np.asarray(weights, dtype=float)
-        if array.shape != (n,):
-            raise ValueError(f"weights must have shape ({n},), got {array.shape}")
-        if not np.all(np.isfinite(array)) or np.any(array < 0) or array.sum() <= 0:
-            raise ValueError("weights must be finite, >= 0 and not all zero")
-        array = array / array.sum()
-        array = np.maximum(array, 1e-6 * array.max())
-        normalised: np.ndarray = array / array.sum()
-        return normalised
-
-    def _initial(self, name: str, given: np.ndarray, cold: np.ndarray) -> np.ndarray:
-        array = np.asarray(given)
-        if array.shape == cold.shape[1:]:
-            array = np.broadcast_to(array, cold.shape)
-        if array.shape != cold.shape:
-            raise ValueError(f"{name} must have shape {cold.shape[1:]} or {cold.shape}, got "
-                             f"{array.shape}")
-        if not np.all(np.isfinite(array)):
-            raise ValueError(f"{name} has non-finite entries")
-        return np.array(array, dtype=cold.dtype)
-
-    def _weight_vector(self, layout: HorizonLayout, rho: Mapping[str, float]) -> np.ndarray:
-        """``diag G`` of one step (float64, memoised)."""
-        key = ("G", *layout.block_sizes().items(), *(float(rho[k]) for k in BLOCKS))
-        out = self._vectors.get(key)
-        if out is None:
-            out = np.concatenate([np.full(size, float(rho[name]))
-                                  for name, size in layout.block_sizes().items()])
-            self._vectors[key] = out
-        return out
-
-
-def _weighted_norm(values: np.ndarray, p: np.ndarray) -> float:
-    """``sqrt(sum_j p_j ||v_j||^2)`` over the leading sample axis (float64)."""
-    squares = np.sum(np.reshape(values, (values.shape[0], -1)).astype(np.float64) ** 2, axis=1)
-    return float(np.sqrt(np.dot(p, squares)))
-
-
-def shift_warm(delta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`solvers.c3.shift_warm_start` in the arrays' own dtype."""
-    out = []
-    for array in (delta, w):
-        shifted = array.copy()
-        shifted[..., :-1, :] = array[..., 1:, :]
-        out.append(shifted)
-    return out[0], out[1]
-
-
-class BatchedC3PlusSolver(Protocol):
-    """What :class:`FastC3PlusController` drives: :class:`FastC3Plus` or
-    :class:`solvers.fast_jax.JaxC3Plus`."""
-
-    def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
-              delta: np.ndarray | None = None, w: np.ndarray | None = None,
-              fallback_input: np.ndarray | None = None) -> FastSolution: ...
-
-
-class FastC3PlusController:
-    """Warm-started batched C3+ (the shift of :func:`solvers.c3.shift_warm_start`).
-
-    After a successful step ``delta`` and ``w`` are shifted one step forward; rho restarts
-    from ``rho0`` and the scaled dual is kept; a failed step drops the warm start and returns
-    the last safe input.
-    """
-
-    def __init__(self, solver: BatchedC3PlusSolver,
-                 initial_input: np.ndarray | None = None) -> None:
-        self.solver = solver
-        self.last_safe_input = None if initial_input is None else \
-            np.asarray(initial_input, dtype=float)
-        self.delta: np.ndarray | None = None
-        self.w: np.ndarray | None = None
-        self.failures = 0
-
-    def reset(self) -> None:
-        self.delta = self.w = self.last_safe_input = None
-        self.failures = 0
-
-    def step(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None
-             ) -> FastSolution:
-        delta = w = None
-        if self.delta is not None and self.w is not None and \
-                self.delta.shape[0] == lcs.n_samples:
-            delta, w = shift_warm(self.delta, self.w)
-        solution = self.solver.solve(lcs, x0, weights, delta, w, self.last_safe_input)
-        if solution.ok:
-            self.delta, self.w = solution.delta, solution.w
-            self.last_safe_input = np.asarray(solution.u, dtype=float).copy()
-        else:
-            self.delta = self.w = None
-            self.failures += 1
-        return solution
+        return solve_batched(self, lcs, self.mpc, x0, self.options, weights, delta, w,
+                             fallback_input, self.shared_inputs, self.record_residuals)
 
 
 def fast_options(**changes: Any) -> C3Options:

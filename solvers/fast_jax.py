@@ -1,19 +1,19 @@
 """The batched C3+ control step compiled with JAX (optional: ``pip install c3bench[jax]``).
 
-The same algorithm as :mod:`solvers.fast` (read its docstring for the formulas): ``eta``
-eliminated, a Riccati recursion over ``T`` steps for every sample, the closed-form projection,
-the dual update and the rho schedule, for ``n`` samples at once, inside **one** ``jax.jit``
-compiled function per (shapes, options): the ADMM iterations are a ``lax.scan``, the ``T``
-time steps of the Riccati recursion and of the rollout are ``lax.scan`` loops (``unroll``
-sets their unrolling), and every operation acts on all samples at once (arrays with a leading
-sample axis: the matrix products are batched dots, the projection, the shared-input mean and
-the dual update act on the (n, T, ns) arrays).
+A kernel of the one ADMM (:mod:`c3bench.solvers.admm.loop` drives it): the QP step of
+:mod:`solvers.fast` (read its docstring for the formulas: ``eta`` eliminated, a Riccati
+recursion over ``T`` steps for every sample) and the projection
+(:func:`c3bench.solvers.admm.projection.make_step_projection` in ``jax.numpy``: pairs, box
+limits, shared-input mean) fused into **one** ``jax.jit`` compiled call per ADMM iteration,
+so one iteration is one XLA executable whatever the number of samples (the ``T`` time steps
+of the Riccati recursion and of the rollout are ``lax.scan`` loops, ``unroll`` sets their
+unrolling; every operation acts on all samples at once). The arrays stay on the device
+between iterations; the loop's dual update is one more device operation.
 
 Differences from the numpy path (same mathematics, different arrangement):
 
-* the factorisation and the linear passes are fused per iteration (the rho of the next
-  iteration is a traced value, so the ``adaptive`` and ``residual_balancing`` schedules run
-  inside the compiled loop too);
+* the factorisation and the linear passes are fused per iteration (rho is a traced value, so
+  a new rho costs no recompilation);
 * the gains are kept factored: ``Q_vv = L L^T`` by an unrolled Cholesky factorisation
   (``nv = 8``: straight-line code in which every scalar operation acts on the vector of one
   entry over all samples; a non-positive pivot gives NaN, which fails the step instead of
@@ -24,9 +24,10 @@ Differences from the numpy path (same mathematics, different arrangement):
   dividing in a way that XLA does not fuse and recompute (:func:`forward_substitution`),
   made the control step 1.2 to 1.7 times faster on one CPU core than the former ``vmap``
   of a per-sample Cholesky solve, most at 256 samples);
-* the stopping rule is ``fixed`` only (``residual`` raises ``ValueError``);
 * timings cannot be split inside a compiled call: :class:`solvers.fast.FastTimings` reports
-  the whole ADMM as ``qp_solve`` and zero for the parts.
+  the QP step and projection as ``qp_solve``;
+* non-finite values are checked once, after the last iteration (a check per iteration would
+  synchronise the device every iteration).
 
 Precision: ``float32`` or ``float64``; the first use of JAX here (:func:`jax_modules`, called
 by the constructor) turns on ``jax_enable_x64`` (process-wide, needed for float64 arrays;
@@ -40,7 +41,6 @@ a GPU (a GPU request without one raises :class:`JaxUnavailable` with "no GPU vis
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -49,10 +49,15 @@ import numpy as np
 
 from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.lcs import LCSBatch
-from c3bench.problems.mpc import MPC
+from c3bench.problems.mpc import MPC, HorizonLayout
 from c3bench.problems.names import Precision, Variant
-from c3bench.solvers.c3 import C3Options
-from c3bench.solvers.fast import FastSolution, FastTimings
+from c3bench.solvers.admm.controller import solve_batched
+from c3bench.solvers.admm.kernel import StepInputs
+from c3bench.solvers.admm.loop import admm_iteration
+from c3bench.solvers.admm.options import C3Options
+from c3bench.solvers.admm.projection import make_step_projection
+from c3bench.solvers.admm.solution import FastSolution, FastTimings
+from c3bench.solvers.admm.stacked import box_of_step, projection_weight_vector
 
 
 class JaxUnavailable(BackendUnavailable):
@@ -195,8 +200,6 @@ class JaxC3Plus:
             raise ValueError("JaxC3Plus runs the c3plus variant only")
         if options.input_bounds:
             raise ValueError("JaxC3Plus does not take input bounds")
-        if options.stopping != "fixed":
-            raise ValueError("JaxC3Plus runs a fixed number of iterations (stopping='fixed')")
         if precision not in tuple(Precision):
             raise ValueError(f"precision must be one of {tuple(map(str, Precision))}, got "
                              f"{precision!r}")
@@ -217,15 +220,18 @@ class JaxC3Plus:
         self.rollout = rollout
         self.unroll = int(unroll)
         self._compiled: dict[tuple[int, ...], Callable[..., Any]] = {}
+        self.timings = FastTimings()
+        self.info: dict[str, Any] = {}
+        self._constants: dict[int, tuple[np.ndarray, Any]] = {}
 
-    # -- the compiled step -------------------------------------------------------------------
+    name = "jax"
+
+    # -- the compiled iteration --------------------------------------------------------------
     def _build(self, n: int, nx: int, nlam: int, nu: int) -> Callable[..., Any]:
         jax, jnp, lax = jax_modules()
-        options, mpc, dtype = self.options, self.mpc, self.dtype
-        iterations = int(options.admm_iterations)
+        mpc, dtype = self.mpc, self.dtype
         nv = nlam + nu
         ny = nx + nv
-        ns = ny + nlam
         Q = np.asarray(mpc.Q, dtype=np.float64)
         R = np.asarray(mpc.R, dtype=np.float64)
         base = np.zeros((ny, ny))
@@ -240,21 +246,12 @@ class JaxC3Plus:
                                         np.full(nlam, 3)])
         onehot_step = jnp.asarray(np.eye(4)[block_of_step], dtype=dtype)  # (ns, 4)
         onehot_y = onehot_step[:ny]
-        scheduled = jnp.asarray([1.0 if key in options.rho_blocks else 0.0
-                                 for key in ("x", "lam", "u", "eta")], dtype=dtype)
-        rho0 = jnp.asarray([options.rho0[key] for key in ("x", "lam", "u", "eta")],
-                           dtype=np.float64)
-        schedule = options.rho_schedule
         ridge_v = np.zeros(ny)
         ridge_v[nx:] = self.ridge
         ridge_j = jnp.asarray(np.diag(ridge_v), dtype=dtype)
         jacobi, symmetrize, rollout = self.jacobi, self.symmetrize, self.rollout
         unroll = self.unroll
         shared = self.shared_inputs and n > 1
-        limit = float(mpc.force_limit)
-        lam_s = slice(nx, nx + nlam)
-        u_s = slice(nx + nlam, ny)
-        eta_s = slice(ny, ns)
 
         def swap(a: Any) -> Any:
             return jnp.swapaxes(a, -1, -2)
@@ -327,139 +324,122 @@ class JaxC3Plus:
             eta = ys @ swap(M) + c[:, None, :]
             return jnp.concatenate([ys, eta], axis=-1), xs[:, -1]
 
-        def project(v: Any, rho: Any) -> Any:
-            a = jnp.maximum(v[..., lam_s], 0)
-            b = jnp.maximum(v[..., eta_s], 0)
-            keep = jnp.sqrt(rho[1]).astype(dtype) * a >= jnp.sqrt(rho[3]).astype(dtype) * b
-            out = v.at[..., lam_s].set(jnp.where(keep, a, 0))
-            return out.at[..., eta_s].set(jnp.where(keep, 0, b))
+        project = make_step_projection(jnp, nx, nlam, nu)
 
-        def weighted_norm(values: Any, p: Any) -> Any:
-            flat = values.astype(jnp.float64).reshape(n, -1)
-            # row sums as a matrix-vector product (faster than XLA's CPU reduction here)
-            squares = (flat * flat) @ jnp.ones(flat.shape[1], dtype=jnp.float64)
-            return jnp.sqrt(jnp.dot(p, squares))
+        def iterate(A: Any, Bv: Any, d: Any, M: Any, MtM: Any, c: Any, x0: Any, rho: Any,
+                    sqrt_u: Any, lower: Any, upper: Any, p: Any, delta: Any, w: Any
+                    ) -> tuple[Any, Any, Any]:
+            """QP step and projection of ``z + w`` (one ADMM iteration but the dual update)."""
+            z, terminal = qp(A, Bv, d, M, MtM, c, x0, rho, delta - w)
+            new_delta = project(z + w, sqrt_u[0], sqrt_u[1], lower, upper, p.astype(dtype),
+                                shared)
+            return z, terminal, new_delta
 
-        def multiplier(consensus: Any, previous: Any, dual: Any, i: Any) -> Any:
-            if schedule == "geometric":
-                return jnp.asarray(float(options.rho_factor), dtype=jnp.float64)
-            if schedule == "adaptive":
-                grow = consensus >= options.adaptive_gamma * previous
-                return jnp.where((i > 0) & grow, float(options.adaptive_beta), 1.0)
-            up = consensus > options.balance_mu * dual
-            down = dual > options.balance_mu * consensus
-            return jnp.where(up, float(options.balance_tau),
-                             jnp.where(down, 1.0 / float(options.balance_tau), 1.0))
+        def fused(A: Any, Bv: Any, d: Any, M: Any, MtM: Any, c: Any, x0: Any, rho: Any,
+                  sqrt_u: Any, lower: Any, upper: Any, p: Any, delta: Any, w: Any
+                  ) -> tuple[Any, Any, Any, Any]:
+            """The loop's :func:`admm_iteration` (kernel step and dual update) traced whole."""
+            traced = _TracedKernel(lambda r, dl, wl: iterate(
+                A, Bv, d, M, MtM, c, x0, r[0], r[1], lower, upper, p, dl, wl))
+            return admm_iteration(traced, (rho, sqrt_u), delta, w)
 
-        def step(A: Any, Bv: Any, d: Any, M: Any, c: Any, x0: Any, delta: Any, w: Any,
-                 p: Any) -> tuple[Any, ...]:
-            MtM = swap(M) @ M
-            x0 = jnp.broadcast_to(x0, (n, nx))
-            p_work = p.astype(dtype)
-
-            def body(carry: tuple[Any, ...], i: Any) -> tuple[tuple[Any, ...], Any]:
-                delta, w, rho, previous, _, _, _ = carry
-                z, terminal = qp(A, Bv, d, M, MtM, c, x0, rho, delta - w)
-                v = z + w
-                new_delta = project(v, rho)
-                if shared:
-                    mean = jnp.einsum("n,ntu->tu", p_work, v[..., u_s])
-                    new_delta = new_delta.at[..., u_s].set(
-                        jnp.broadcast_to(mean, new_delta[..., u_s].shape))
-                difference = z - new_delta
-                new_w = w + difference
-                G = onehot_step @ rho.astype(dtype)
-                consensus = weighted_norm(difference, p)
-                dual = weighted_norm(2.0 * G * (new_delta - delta), p)
-                factor = multiplier(consensus, previous, dual, i)
-                updated = rho * jnp.where(scheduled > 0, factor, 1.0)
-                last = i + 1 >= iterations
-                updated = jnp.where(last, rho, updated)
-                if options.rescale_dual:
-                    ratio = (onehot_step @ rho) / (onehot_step @ updated)
-                    new_w = new_w * ratio.astype(dtype)
-                carry = (new_delta, new_w, updated, consensus, z, terminal, rho)
-                return carry, (consensus, dual)
-
-            z0 = jnp.zeros_like(delta)
-            init = (delta, w, rho0, jnp.asarray(math.inf, dtype=jnp.float64), z0,
-                    jnp.zeros((n, nx), dtype=dtype), rho0)
-            carry, (consensus, dual) = lax.scan(body, init, jnp.arange(iterations))
-            delta, w, _, _, z, terminal, rho_used = carry
-            first = delta[:, 0, u_s] if options.output == "delta" else z[:, 0, u_s]
-            u_raw = jnp.einsum("n,nu->u", p, first.astype(jnp.float64)) if \
-                self.shared_inputs else first.astype(jnp.float64)
-            finite = jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(delta)) & \
-                jnp.all(jnp.isfinite(u_raw))
-            return (u_raw, jnp.clip(u_raw, -limit, limit), delta, w, z, terminal, rho_used,
-                    consensus, dual, finite)
-
-        compiled: Callable[..., Any] = jax.jit(step)
+        compiled: Callable[..., Any] = jax.jit(fused)
         return compiled
 
     def compiled(self, n: int, nx: int, nlam: int, nu: int) -> Callable[..., Any]:
-        """The compiled step for these sizes (built and cached on first use)."""
+        """The compiled iteration for these sizes (built and cached on first use)."""
         key = (n, nx, nlam, nu)
         if key not in self._compiled:
             self._compiled[key] = self._build(n, nx, nlam, nu)
         return self._compiled[key]
 
+    # -- the kernel of the one ADMM ----------------------------------------------------------
+    def bind(self, lcs: LCSBatch) -> None:
+        """Move ``lcs`` to the device for the next control step."""
+        if lcs.nx != self.mpc.nx or lcs.nu != self.mpc.nu:
+            raise ValueError("LCS and MPC dimensions disagree")
+        jax, jnp, _ = jax_modules()
+        dtype = self.dtype
+        self.lcs = lcs
+        self.layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, self.mpc.horizon)
+        arrays = [lcs.A, np.concatenate([lcs.D, lcs.B], axis=2), lcs.d,
+                  np.concatenate([lcs.E, lcs.F, lcs.H], axis=2)]
+        A, Bv, d, M = (jax.device_put(np.asarray(a, dtype=dtype), self.device) for a in arrays)
+        MtM = jnp.swapaxes(M, -1, -2) @ M
+        c = jax.device_put(np.asarray(lcs.c, dtype=dtype), self.device)
+        self._lcs_arrays = (A, Bv, d, M, MtM, c)
+        self._step = self.compiled(lcs.n_samples, lcs.nx, lcs.nlam, lcs.nu)
+
+    def start(self, inputs: StepInputs) -> None:
+        """Per step: ``x0``, sample weights and the box on the device."""
+        jax = self.jax
+        n = self.lcs.n_samples
+        x0 = np.broadcast_to(np.asarray(inputs.x0, dtype=self.dtype), (n, self.lcs.nx))
+        lower, upper = box_of_step(self.mpc, self.layout, self.options.use_limits)
+        self._step_arrays = tuple(jax.device_put(np.asarray(a, dtype=self.dtype), self.device)
+                                  for a in (x0, lower, upper))
+        self._p = jax.device_put(np.asarray(inputs.weights, dtype=np.float64), self.device)
+
+    def fused(self, kernel: Any, rho: dict[str, float], delta: Any, w: Any
+              ) -> tuple[Any, Any, Any, Any]:
+        """One ADMM iteration (:func:`admm_iteration`: QP step, projection, dual update) as
+        one compiled device call; the loop calls this instead of ``admm_iteration``."""
+        t0 = time.perf_counter()
+        U = projection_weight_vector(self.options, self.layout, rho)
+        lam_s, eta_s = self.layout.index(0, "lam"), self.layout.index(0, "eta")
+        sqrt_u = np.stack([np.sqrt(U[lam_s]), np.sqrt(U[eta_s])]).astype(self.dtype)
+        rho_vec = np.asarray([rho[key] for key in ("x", "lam", "u", "eta")], dtype=np.float64)
+        x0, lower, upper = self._step_arrays
+        out: tuple[Any, Any, Any, Any] = self._step(*self._lcs_arrays, x0, rho_vec, sqrt_u,
+                                                    lower, upper, self._p, delta, w)
+        self.timings.qp_solve += time.perf_counter() - t0
+        return out
+
+    def iterate(self, rho: dict[str, float], delta: Any, w: Any) -> tuple[Any, Any, Any]:
+        """QP step and projection (the fused call's first three outputs)."""
+        z, terminal, new_delta, _ = self.fused(self, rho, delta, w)
+        return z, terminal, new_delta
+
+    def constant(self, array: np.ndarray) -> Any:
+        """``array`` on the device, memoised by identity (the loop's memoised ratios)."""
+        key = id(array)
+        cached = self._constants.get(key)
+        if cached is None or cached[0] is not array:
+            cached = (array, self.jax.device_put(array, self.device))
+            if len(self._constants) > 256:
+                self._constants.clear()
+            self._constants[key] = cached
+        return cached[1]
+
     def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
               delta: np.ndarray | None = None, w: np.ndarray | None = None,
               fallback_input: np.ndarray | None = None) -> FastSolution:
-        """One control step, as :meth:`solvers.fast.FastC3Plus.solve` (returns numpy)."""
-        jax = self.jax
-        started = time.perf_counter()
-        n, nx, nlam, nu = lcs.n_samples, lcs.nx, lcs.nlam, lcs.nu
-        if nx != self.mpc.nx or nu != self.mpc.nu:
-            raise ValueError("LCS and MPC dimensions disagree")
-        T = self.mpc.horizon
-        ns = nx + 2 * nlam + nu
-        dtype = self.dtype
-        p = _weights(weights, n)
-        if delta is None:
-            delta = np.zeros((n, T, ns), dtype=dtype)
-            delta[:, :, :nx] = np.asarray(x0, dtype=dtype)
-        if w is None:
-            w = np.zeros((n, T, ns), dtype=dtype)
-        delta = np.array(np.broadcast_to(delta, (n, T, ns)), dtype=dtype)
-        w = np.array(np.broadcast_to(w, (n, T, ns)), dtype=dtype)
-        fallback = np.zeros(nu) if fallback_input is None else np.asarray(fallback_input,
-                                                                          dtype=float)
-        step = self.compiled(n, nx, nlam, nu)
-        arrays = [lcs.A, np.concatenate([lcs.D, lcs.B], axis=2), lcs.d,
-                  np.concatenate([lcs.E, lcs.F, lcs.H], axis=2), lcs.c]
-        inputs = [jax.device_put(np.asarray(a, dtype=dtype), self.device) for a in arrays]
-        inputs += [jax.device_put(np.asarray(x0, dtype=dtype), self.device),
-                   jax.device_put(delta, self.device), jax.device_put(w, self.device),
-                   jax.device_put(p, self.device)]
-        outputs = jax.block_until_ready(step(*inputs))
-        (u_raw, u, delta_out, w_out, z, terminal, rho_used, consensus, dual,
-         finite) = (np.asarray(o) for o in outputs)
-        ok = bool(finite)
-        elapsed = time.perf_counter() - started
-        rho = {key: float(value) for key, value in zip(("x", "lam", "u", "eta"), rho_used,
-                                                       strict=True)}
-        return FastSolution(
-            u=u.astype(np.float64) if ok else fallback, u_raw=u_raw if ok else None, ok=ok,
-            status=f"{self.options.admm_iterations} iterations" if ok else
-            "non-finite values in the compiled step",
-            iterations=self.options.admm_iterations, delta=delta_out, w=w_out, z_steps=z,
-            z_terminal=terminal, rho=rho, weights=p,
-            consensus_residual=[float(v) for v in consensus],
-            dual_residual=[float(v) for v in dual],
-            timings=FastTimings(qp_solve=elapsed, total=elapsed))
+        """One control step of the one ADMM on the device (returns numpy arrays)."""
+        solution = solve_batched(self, lcs, self.mpc, x0, self.options, weights, delta, w,
+                                 fallback_input, self.shared_inputs, record_residuals=False)
+        solution.delta, solution.w = np.asarray(solution.delta), np.asarray(solution.w)
+        if solution.z_steps is not None and solution.z_terminal is not None:
+            solution.z_steps = np.asarray(solution.z_steps)
+            solution.z_terminal = np.asarray(solution.z_terminal)
+        arrays = [a for a in (solution.delta, solution.w, solution.z_steps, solution.z_terminal)
+                  if a is not None]
+        if solution.ok and not all(np.all(np.isfinite(a)) for a in arrays):
+            solution.ok, solution.status, solution.u_raw = False, \
+                "non-finite values in the compiled step", None
+            solution.u = np.zeros(lcs.nu) if fallback_input is None else \
+                np.asarray(fallback_input, dtype=float).copy()
+        return solution
+
+
+class _TracedKernel:
+    """A kernel whose ``iterate`` is a traced function (inside :func:`jax.jit`)."""
+
+    def __init__(self, iterate: Callable[[Any, Any, Any], tuple[Any, Any, Any]]) -> None:
+        self.iterate = iterate
 
 
 def _weights(weights: Sequence[float] | None, n: int) -> np.ndarray:
-    """Normalised, floored sample weights (as :func:`solvers.c3.solve_robust`)."""
-    if weights is None:
-        return np.full(n, 1.0 / n)
-    array = np.asarray(weights, dtype=float)
-    if array.shape != (n,) or not np.all(np.isfinite(array)) or np.any(array < 0) \
-            or array.sum() <= 0:
-        raise ValueError(f"weights must be {n} finite values >= 0, not all zero")
-    array = array / array.sum()
-    array = np.maximum(array, 1e-6 * array.max())
-    normalised: np.ndarray = array / array.sum()
-    return normalised
+    """Normalised, floored sample weights (:func:`c3bench.solvers.admm.loop.normalise_weights`)."""
+    from c3bench.solvers.admm.loop import normalise_weights
+
+    return normalise_weights(weights, n)

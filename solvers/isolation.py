@@ -62,6 +62,7 @@ from c3bench.solvers.child_process import (
     send,
     stop,
 )
+from c3bench.solvers.timing import warm_solve
 
 SLOW_SOLVE_SECONDS = 1.0
 """A solve whose warm-up took longer than this is timed once: repeats add little accuracy."""
@@ -78,22 +79,33 @@ class SolveJob:
     warm_start: WarmStart | None
     repeats: int
     warmup: bool
+    update: bool = False
+    """A warm cell: each solve is :func:`~c3bench.solvers.timing.warm_solve` (the solver
+    object prepared untimed, then update + solve timed), not ``backend.solve``."""
+
+
+def _one_solve(job: SolveJob) -> Result:
+    """One solve of ``job``: cold (``backend.solve``) or warm (``warm_solve``)."""
+    if job.update:
+        return warm_solve(job.backend, job.problem, job.settings, job.warm_start)
+    return job.backend.solve(job.problem, job.settings, job.warm_start)
 
 
 def _run_repeats(job: SolveJob, notify: Callable[[int], None]) -> Result:
     """Warm-up (untimed) then ``job.repeats`` solves, BLAS on one thread; times are the
     medians. After a warm-up longer than :data:`SLOW_SOLVE_SECONDS` one timed solve is made.
-    ``notify(n)`` is told, after the warm-up, how many timed solves follow."""
-    backend, repeats = job.backend, job.repeats
+    ``notify(n)`` is told, after the warm-up, how many timed solves follow. A warm job
+    (``job.update``) times update + solve of a solver object prepared untimed before each
+    solve (:func:`~c3bench.solvers.timing.warm_solve`), so ``setup_time`` is the update."""
+    repeats = job.repeats
     with pinned_blas():
         if job.warmup:
             start = time.perf_counter()
-            backend.solve(job.problem, job.settings, job.warm_start)
+            _one_solve(job)
             if time.perf_counter() - start > SLOW_SOLVE_SECONDS:
                 repeats = 1
         notify(repeats)
-        results = [backend.solve(job.problem, job.settings, job.warm_start)
-                   for _ in range(repeats)]
+        results = [_one_solve(job) for _ in range(repeats)]
     result = results[-1]
     if repeats > 1:
         result.setup_time = statistics.median(r.setup_time for r in results)
@@ -218,7 +230,7 @@ def _pickled(item: object, backend: Backend) -> bytes | str:
 
 def solve_isolated(name: str, problem: Problem, settings: Settings | None = None,
                    warm_start: WarmStart | None = None, repeats: int = 1, warmup: bool = False,
-                   check: bool = True) -> Result:
+                   check: bool = True, update: bool | None = None) -> Result:
     """Solve ``problem`` with backend ``name`` in a child process killed on overrun; never
     raises for a solver's misbehaviour.
 
@@ -231,6 +243,10 @@ def solve_isolated(name: str, problem: Problem, settings: Settings | None = None
         medians (one solve when the warm-up took over :data:`SLOW_SOLVE_SECONDS`).
     warmup
         Solve once, untimed, first (first-call costs, lazy imports, JIT).
+    update
+        Time a warm cell by the solver's update API (:func:`~c3bench.solvers.timing.warm_solve`:
+        the solver object prepared untimed, update + solve timed); ``None``: whenever a
+        ``warm_start`` is given (a benchmark's warm cell), cold otherwise.
 
     Returns
     -------
@@ -251,7 +267,8 @@ def solve_isolated(name: str, problem: Problem, settings: Settings | None = None
     admitted = registry.admit(name, problem, settings, check)
     if isinstance(admitted, Result):
         return admitted
-    payload = _pickled(SolveJob(admitted, problem, settings, warm_start, repeats, warmup),
+    warm = (warm_start is not None) if update is None else update
+    payload = _pickled(SolveJob(admitted, problem, settings, warm_start, repeats, warmup, warm),
                        admitted)
     if isinstance(payload, str):
         return Result.failed(name, problem.name, Failure.ERROR, payload)

@@ -1,5 +1,6 @@
-"""C3+'s closed-form projection onto complementarity (the maths; the registry backend
-``c3plus_closed_form`` is :mod:`c3bench.solvers.backends.c3plus_closed_form`).
+"""C3+'s closed-form projection onto complementarity: the derivation (the one definition is
+:func:`c3bench.solvers.admm.projection.make_c3plus_pairs`, re-exported here; the registry
+backend ``c3plus_closed_form`` is :mod:`c3bench.solvers.backends.c3plus_closed_form`).
 
 For one pair, with weights ``w_lam, w_eta >= 0`` and a point ``(a, b) = (v_lam, v_eta)``:
 
@@ -33,47 +34,6 @@ reference study c3bench reproduces).
 
 from __future__ import annotations
 
-import numpy as np
+from c3bench.solvers.admm.projection import c3plus_projection
 
-
-def c3plus_projection(v_lam: np.ndarray, v_eta: np.ndarray, w_lam: np.ndarray | float,
-                      w_eta: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-    """Project every pair ``(v_lam_i, v_eta_i)`` onto ``{lam, eta >= 0, lam eta = 0}``.
-
-    The norm is ``w_lam (lam - v_lam)^2 + w_eta (eta - v_eta)^2`` per pair; the member with
-    the larger ``sqrt(w) max(v, 0)`` is kept (clipped at 0), the other set to 0; ties keep
-    ``lam`` (see the module docstring for the derivation).
-
-    Parameters
-    ----------
-    v_lam, v_eta
-        Points to project (same shape, any number of dimensions).
-    w_lam, w_eta
-        Non-negative weights, broadcastable to ``v_lam``.
-
-    Returns
-    -------
-    lam, eta
-        The projection, arrays of ``v_lam``'s shape, in the inputs' floating type
-        (``float32`` stays ``float32``; integers become ``float64``).
-    """
-    dtype = np.result_type(np.asarray(v_lam), np.asarray(v_eta), np.float32)
-    a = np.asarray(v_lam, dtype=dtype)
-    b = np.asarray(v_eta, dtype=dtype)
-    if a.shape != b.shape:
-        raise ValueError(f"v_lam and v_eta must have the same shape, got {a.shape} and "
-                         f"{b.shape}")
-    wl = np.broadcast_to(np.asarray(w_lam, dtype=dtype), a.shape)
-    we = np.broadcast_to(np.asarray(w_eta, dtype=dtype), a.shape)
-    if np.any(wl < 0) or np.any(we < 0):
-        raise ValueError("weights must be >= 0")
-    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))
-            and np.all(np.isfinite(wl)) and np.all(np.isfinite(we))):
-        raise ValueError("points and weights must be finite")
-    zero = dtype.type(0)
-    a_plus = np.maximum(a, zero)
-    b_plus = np.maximum(b, zero)
-    keep_lam = np.sqrt(wl) * a_plus >= np.sqrt(we) * b_plus
-    lam = np.where(keep_lam, a_plus, zero)
-    eta = np.where(keep_lam, zero, b_plus)
-    return lam, eta
+__all__ = ["c3plus_projection"]

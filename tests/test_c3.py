@@ -88,7 +88,7 @@ def small() -> SimpleNamespace:
     config = replace(config, mpc=replace(config.mpc, horizon=2))
     record = scripted_push(config, 1.5)
     indices = sample_states(record, 2, 0.02)
-    scene = build_scene(l=0.29, config=config)
+    scene = build_scene(l=0.29, config=config, ball_table=False)  # enumerable mpccs
     mpc = build_mpc(scene, config.mpc)
     cases = []
     for index in indices:
@@ -213,7 +213,7 @@ def test_c3_miqp_projection_step_is_optimal(small: SimpleNamespace) -> None:
     lcs = small.cases[0].lcs
     layout1 = full_layout(lcs, 1)
     c3_layout = replace(layout1, n_eta=0)
-    rho = {"x": 1.0, "lam": 200.0, "u": 0.1, "eta": 7.0}  # eta's weight must be ignored
+    # weights x 1, lam 200, u 0.1; eta's weight must be ignored (0 in U)
     U = np.concatenate([np.full(lcs.nx, 1.0), np.full(lcs.nlam, 200.0), np.full(lcs.nu, 0.1),
                         np.zeros(lcs.nlam)])
     rng = np.random.default_rng(3)
@@ -221,7 +221,8 @@ def test_c3_miqp_projection_step_is_optimal(small: SimpleNamespace) -> None:
         v = rng.normal(0.0, 1.0, lcs.nx + lcs.nlam + lcs.nu)
         v[:lcs.nx] = small.cases[0].x0 + 0.01 * v[:lcs.nx]
         v[lcs.nx:lcs.nx + lcs.nlam] *= 5.0
-        out = project_step_c3(v, lcs, rho, registry.get("scip"), settings_for("mid_accuracy"))
+        out = project_step_c3(v, lcs, U[:c3_layout.step_size], registry.get("scip"),
+                              settings_for("mid_accuracy"))
         v_full = to_full_steps(v[None, :], lcs, c3_layout)[0]
         problem = families.projection("proj-c3", lcs, v_full, U, "c3")
         _, optimum = miqp.enumerate_modes(problem)
@@ -460,7 +461,8 @@ def test_controller_capture_is_deterministic_with_the_seeds_rho(small: SimpleNam
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     problems = build_state_instances(_context(small, spec), capture)
     qps = [p for p in problems if p.family == "c3plus_qp"]
-    assert [p.meta["admm_iteration"] for p in qps] == [0, 2]
+    for variant in ("bounded", "equality"):  # each QP step at both variants
+        assert [p.meta["admm_iteration"] for p in qps if p.meta["variant"] == variant] == [0, 2]
     assert all(p.meta["capture"] == f"controller:c3plus/{backend}" for p in qps)
 
 
@@ -537,6 +539,9 @@ def test_lcp_prediction_weights_prefer_the_true_side(small: SimpleNamespace) -> 
     assert int(np.argmax(weights)) == 1
     assert weights[1] > weights[0] and weights[1] > weights[2]
     assert np.array_equal(lcp_prediction_weights(samples, []), np.full(3, 1 / 3))
+    np.testing.assert_allclose(lcp_prediction_weights(samples, observations),
+                               lcp_prediction_weights(samples, observations, compiled=False),
+                               rtol=1e-9, atol=1e-15)
 
 
 # --- registry adapters -----------------------------------------------------------------------

@@ -79,8 +79,8 @@ def reference_optima(quick_qps: dict[str, Problem]) -> dict[str, float]:
 
 def _selection(quick_qps: dict[str, Problem]) -> list[Problem]:
     """Two c3plus_qp instances of one shape, one c3_qp and both lcp instances."""
-    return [pick(quick_qps, "c3plus_qp-", 0), pick(quick_qps, "c3plus_qp-", 1),
-            pick(quick_qps, "c3_qp-", 0), pick(quick_qps, "lcp-", 0),
+    return [pick(quick_qps, "c3plus_qp-equality-", 0), pick(quick_qps, "c3plus_qp-equality-", 1),
+            pick(quick_qps, "c3_qp-equality-", 0), pick(quick_qps, "lcp-", 0),
             pick(quick_qps, "lcp-", 1)]
 
 
@@ -128,7 +128,7 @@ def test_infeasible_problem_is_a_recorded_failure(name: str) -> None:
 
 
 def test_model_is_dpp_with_the_factor_of_p(quick_qps: dict[str, Problem]) -> None:
-    for problem in (pick(quick_qps, "c3plus_qp-", 0), pick(quick_qps, "lcp-", 0)):
+    for problem in (pick(quick_qps, "c3plus_qp-equality-", 0), pick(quick_qps, "lcp-", 0)):
         factor = hessian_factor(problem.P)
         dense = factor.value()
         matrix = dense if isinstance(dense, np.ndarray) else dense.toarray()
@@ -143,7 +143,8 @@ def test_second_instance_of_a_shape_reuses_the_compiled_problem(
         quick_qps: dict[str, Problem], reference_optima: dict[str, float]) -> None:
     _skip_unless_available("cvxpy_osqp")
     cvxpy_backend.clear_cache()
-    first, second = pick(quick_qps, "c3plus_qp-", 0), pick(quick_qps, "c3plus_qp-", 1)
+    first = pick(quick_qps, "c3plus_qp-equality-", 0)
+    second = pick(quick_qps, "c3plus_qp-equality-", 1)
     assert cvxpy_backend.shape_key(first, hessian_factor(first.P), False) == \
         cvxpy_backend.shape_key(second, hessian_factor(second.P), False)
     assert reference_optima[first.name] != pytest.approx(reference_optima[second.name])
@@ -157,7 +158,7 @@ def test_second_instance_of_a_shape_reuses_the_compiled_problem(
         # the re-solve answers the new parameter values, not the compiled instance's
         assert cost_error(result.objective, reference_optima[problem.name]) <= COST_TOL
         _assert_kkt(problem, result)
-    other = registry.solve("cvxpy_osqp", pick(quick_qps, "c3_qp-", 0),
+    other = registry.solve("cvxpy_osqp", pick(quick_qps, "c3_qp-equality-", 0),
                            settings_for("mid_accuracy"))
     assert other.diagnostics["cvxpy_compiled"] == 1.0
     assert compilations("cvxpy_osqp") == before + 2
@@ -186,7 +187,7 @@ def test_large_non_diagonal_p_is_a_constant_of_the_model(
 @pytest.mark.timeout(120)
 def test_isolated_repeats_reuse_the_warm_up_compile(quick_qps: dict[str, Problem]) -> None:
     _skip_unless_available("cvxpy_clarabel")
-    problem = pick(quick_qps, "c3plus_qp-", 0)
+    problem = pick(quick_qps, "c3plus_qp-equality-", 0)
     cold = solve_isolated("cvxpy_clarabel", problem, settings_for("mid_accuracy"))
     warm = solve_isolated("cvxpy_clarabel", problem, settings_for("mid_accuracy"),
                           repeats=3, warmup=True)

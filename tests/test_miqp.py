@@ -73,7 +73,7 @@ def test_enumeration_skips_infeasible_modes_and_refuses_large(quick: dict[str, P
     infeasible = _toy(2 * np.eye(2), np.zeros(2), [(0, 1)], np.array([[1.0, 1.0]]),
                       np.array([-1.0]))
     assert enumerate_modes(infeasible) == (None, np.inf)
-    with pytest.raises(ValueError, match="42 complementarity pairs"):
+    with pytest.raises(ValueError, match="56 complementarity pairs"):
         enumerate_modes(pick(quick, "mpcc-s", 0))
 
 

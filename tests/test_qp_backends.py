@@ -262,8 +262,11 @@ COST_TOL = 1e-4
 GARBAGE_COST = 1e-2
 # (backend, family) where a claimed solution may be rejected by the check: quadprog needs a
 # positive definite Hessian and the lcp family's is only semi-definite (smallest eigenvalue
-# ~1e-17); its Cholesky can pass on rounding and return a wrong point.
-MAY_CLAIM_WRONGLY = {("quadprog", "lcp")}
+# ~1e-17); its Cholesky can pass on rounding and return a wrong point. QPALM on the bounded
+# QP steps (c3_qp- and c3plus_qp-bounded-s012t0-i09) calls solved points whose relative
+# duality gap is 1.4e-5 and 1.7e-5 at a 1e-6 tolerance (cost errors 2.6e-5, 3.2e-5): the
+# residual check rejects them.
+MAY_CLAIM_WRONGLY = {("quadprog", "lcp"), ("qpalm", "c3_qp"), ("qpalm", "c3plus_qp")}
 
 
 def _norm(vector: np.ndarray) -> float:
@@ -373,12 +376,20 @@ def test_warm_start_from_the_solution(name: str, quick_qps: list[Problem],
     problem = next(p for p in quick_qps if p.family == "c3plus_qp")
     reference = references[problem.name]
     assert reference.objective is not None
+    # from the solver's own answer, box duals included (the adapter passes x, y, z, z_box):
+    # it should stop at once. (From Clarabel's high-accuracy answer ProxQP needs 14-33
+    # iterations on the bounded quick instances, more than cold: the points differ by ~3e-7
+    # in x on a QP whose duals reach 3e5, and its proximal scheme restarts from its defaults.)
     cold = _quiet_solve(name, problem, "mid_accuracy")
     warm = _quiet_solve(name, problem, "mid_accuracy",
-                        warm_start=WarmStart(reference.x, reference.y, reference.z))
+                        warm_start=WarmStart(cold.x, cold.y, cold.z, cold.z_box))
     assert cold.found and warm.found, (cold.status, warm.status)
     assert warm.iterations is not None and cold.iterations is not None
-    assert warm.iterations <= cold.iterations
+    if name == "casadi_hpipm":  # an interior-point method gains nothing from a warm start
+        assert warm.iterations <= cold.iterations
+    else:
+        assert warm.iterations <= max(2, cold.iterations // 2), (warm.iterations,
+                                                                 cold.iterations)
     assert warm.objective is not None
     assert cost_error(warm.objective, reference.objective) <= COST_TOL
 

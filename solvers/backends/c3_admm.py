@@ -7,18 +7,21 @@ A thin layer over :mod:`c3bench.solvers.c3` (the ADMM lives there). From an ``mp
 * the MPC cost from ``P``, ``q``: ``Q = P_{x_0 x_0} / 2``, ``R = P_{u_0 u_0} / 2``,
   ``Q_f = P_{x_T x_T} / 2`` and ``x*`` the least-squares solution of ``2 Q_f x* = -q_{x_T}``
   (any ``x*`` component with zero weight is irrelevant to the cost); the force limit from
-  ``ub`` on ``u``. The instance is then rebuilt with :func:`c3bench.problems.families.mpcc`
-  and must match ``P``, ``q``, ``A``, ``b``, the bounds and the offset (else the backend
-  declines: the instance was not an mpcc of this form);
+  ``ub`` on ``u`` and the input / state limits from ``meta["limits"]`` (a bounded mpcc), which
+  the controller then enforces where its method puts them. The instance is then rebuilt with
+  :func:`c3bench.problems.families.mpcc` and must match ``P``, ``q``, ``A``, ``b``, the bounds
+  and the offset (else the backend declines: the instance was not an mpcc of this form);
 
 and runs :func:`c3bench.solvers.c3.solve_c3` from a cold start (or from ``warm_start.x``, an mpcc
 vector whose horizon steps become the initial ``delta``; ``w = 0``).
 
-Settings: ``settings.options`` keys that are :class:`c3bench.solvers.c3.C3Options` fields
-(``qp_backend``, ``admm_iterations``, ``rho_schedule``, ``rho0``, ``stopping``, ...) are passed
-on; ``settings.max_iterations`` caps the ADMM iterations; the inner QP (and projection) run
-with the outer profile, tolerance, time limit and precision. ``options["solution"]`` picks the
-returned point:
+Weights and options: the instance's ``meta["c3_options"]`` (any
+:class:`c3bench.solvers.admm.C3Options` field: ``rho0`` (G), ``projection_weights`` (U),
+``admm_iterations``, ...) are the defaults, and ``settings.options`` keys that are such fields
+(``qp_backend``, ``rho_schedule``, ``stopping``, ...) override them, so a user's LCS runs with
+its own tuning rather than the cube's; ``settings.max_iterations`` caps the ADMM iterations;
+the inner QP (and projection) run with the outer profile, tolerance, time limit and precision.
+``options["solution"]`` picks the returned point:
 
 * ``"delta"`` (default): the projected trajectory ``delta`` (complementary by construction)
   closed with the QP's terminal state ``x_T``; its dynamics residual is of the order of the
@@ -61,6 +64,7 @@ import numpy as np
 
 from c3bench.problems import families
 from c3bench.problems.instance import Problem
+from c3bench.problems.limits import Limits
 from c3bench.problems.mpc import MPC, HorizonLayout
 from c3bench.problems.names import Failure, Family, Precision, Variant
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
@@ -85,11 +89,12 @@ def mpc_from_mpcc(problem: Problem) -> MPC:
     R = problem.P[su, su] / 2.0
     Q_f = problem.P[sT, sT] / 2.0
     x_target = np.linalg.lstsq(2.0 * Q_f, -problem.q[sT], rcond=None)[0]
-    limits = np.inf if problem.ub is None else problem.ub[su]
-    force_limit = float(np.max(limits))
+    upper = np.inf if problem.ub is None else problem.ub[su]
+    force_limit = float(np.max(upper))
+    limits = Limits.from_json(problem.meta["limits"]) if "limits" in problem.meta else None
     mpc = MPC(Q=Q, R=R, Q_f=Q_f, x_target=x_target, horizon=T, dt=problem.lcs.dt,
-              force_limit=force_limit)
-    rebuilt = families.mpcc(problem.name, problem.lcs, mpc, problem.data["x0"])
+              force_limit=force_limit, limits=limits)
+    rebuilt = families.mpcc(problem.name, problem.lcs, mpc, problem.data["x0"], limits=limits)
     scale = max(1.0, float(np.max(np.abs(problem.P))))
     assert rebuilt.A is not None and rebuilt.b is not None
     assert rebuilt.lb is not None and rebuilt.ub is not None
@@ -114,12 +119,24 @@ def mpc_from_mpcc(problem: Problem) -> MPC:
     return mpc
 
 
-def options_for(variant: Variant, settings: Settings) -> tuple[C3Options, str]:
-    """``C3Options`` and the solution point from the settings (module docstring)."""
+def options_for(variant: Variant, settings: Settings,
+                meta: dict[str, Any] | None = None) -> tuple[C3Options, str]:
+    """``C3Options`` and the solution point (module docstring).
+
+    The instance's own ``meta["c3_options"]`` (e.g. ``rho0``, ``projection_weights``,
+    ``admm_iterations`` a user stored with the problem) are the defaults; ``settings.options``
+    override them; anything not given takes :class:`C3Options`' defaults.
+    """
     allowed = {f.name for f in fields(C3Options)} - _NOT_PASSED
-    chosen: dict[str, Any] = {k: v for k, v in settings.options.items() if k in allowed}
-    if "rho0" in chosen:
-        chosen["rho0"] = {str(k): float(v) for k, v in dict(chosen["rho0"]).items()}
+    stored = dict((meta or {}).get("c3_options", {}) or {})
+    unknown = set(stored) - allowed
+    if unknown:
+        raise ValueError(f"meta['c3_options'] has unknown keys {sorted(unknown)}")
+    chosen: dict[str, Any] = {**stored, **{k: v for k, v in settings.options.items()
+                                           if k in allowed}}
+    for key in ("rho0", "projection_weights"):
+        if chosen.get(key) is not None:
+            chosen[key] = {str(k): float(v) for k, v in dict(chosen[key]).items()}
     if "rho_blocks" in chosen:
         chosen["rho_blocks"] = tuple(chosen["rho_blocks"])
     if settings.max_iterations is not None and "admm_iterations" not in chosen:
@@ -184,7 +201,7 @@ class C3Admm(Backend):
         with watch.lap("setup"):
             try:
                 mpc = mpc_from_mpcc(problem)
-                options, point = options_for(self.variant, settings)
+                options, point = options_for(self.variant, settings, problem.meta)
             except (ValueError, TypeError) as error:
                 return Result.failed(self.name, problem.name, Failure.UNSUPPORTED, str(error))
             lcs = problem.lcs

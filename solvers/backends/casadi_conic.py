@@ -39,6 +39,14 @@ of one factorisation). :data:`HPIPM_INFINITY` keeps those boxes at +-1e6 (see it
 HPIPM binding without CasADi installs from the package registry here, so the report names this
 as the reason HPIPM is slow.
 
+Warm cells: neither plugin is an :class:`~c3bench.solvers.timing.UpdatableBackend`, so a
+warm cell pays a full solve with the initial guess (``warm_support`` says why). qpOASES'
+own hot start (``SQProblem::hotstart`` with new vectors) is reachable only through a reused
+CasADi function, which hot-starts from its last active set, but CasADi exposes no call that
+sets new vectors *without* solving nor one that reports the hot start apart from the solve,
+and the ``qpoases`` Python package (which has ``hotstart``) is not installed here. HPIPM's
+CasADi interface re-initialises HPIPM on every call: nothing to update.
+
 References
 ----------
 H. J. Ferreau, C. Kirches, A. Potschka, H. G. Bock and M. Diehl, "qpOASES: a parametric
@@ -255,6 +263,12 @@ class CasadiConicBackend(QPBackend):
 
     def __init__(self, plugin: str, description: str) -> None:
         self.plugin = plugin
+        self.warm_support = (
+            "emulated: CasADi's qpOASES has no public hotstart (a reused conic function "
+            "hot-starts but cannot take new vectors apart from solving); a warm cell pays "
+            "a fresh function + solve from the initial guess" if plugin == "qpoases" else
+            "emulated: CasADi's HPIPM call re-initialises HPIPM every time (no update API); "
+            "a warm cell pays setup + solve from the initial guess")
         self.name = f"casadi_{plugin}"
         self.description = description
 
@@ -338,7 +352,7 @@ class CasadiConicBackend(QPBackend):
             warm = warm_start is not None and warm_start.x is not None
             if warm:
                 assert warm_start is not None
-                lam_a0 = form.stack_duals(warm_start.y, warm_start.z, None)
+                lam_a0 = form.stack_duals(warm_start.y, warm_start.z, warm_start.z_box)
                 arguments["x0"] = np.asarray(warm_start.x, dtype=float)
                 arguments["lam_a0"] = lam_a0 if rows is None else rows.permute(lam_a0)
             options = self.options(settings, rows, warm)

@@ -16,6 +16,11 @@ the two-sided form, the model construction and ``qp.init`` (storing and equilibr
 matrices); solve is ``qp.solve`` (the proximal iterations with their factorisations, which
 ProxQP performs inside ``solve``). A fresh model per call: a cold cell is cold.
 
+Warm cells (:class:`~c3bench.solvers.timing.UpdatableBackend`): the model is initialised
+untimed on the instance; the setup lap is ``qp.update(g=, b=, l=, u=)`` with the instance's
+vectors (matrices and preconditioner kept), the solve lap ``qp.solve(x, y, z)`` from the
+initial guess (``InitialGuess.WARM_START``).
+
 References
 ----------
 A. Bambade, S. El-Kazdadi, A. Taylor and J. Carpentier, "PROX-QP: Yet another Quadratic
@@ -36,15 +41,18 @@ from c3bench.solvers.backends._qp_forms import (
     failure_category,
     qp_result,
 )
+from c3bench.solvers.backends._warm_vectors import two_sided_vectors
 from c3bench.solvers.base import Result, Settings, WarmStart
 from c3bench.solvers.registry import register
-from c3bench.solvers.timing import Stopwatch
+from c3bench.solvers.timing import SETUP, SOLVE, Stopwatch
 
 
 class ProxQPBackend(QPBackend):
     """ProxQP (Bambade et al. 2022) with ``l <= [G; I_S] z <= u`` as ``C`` rows."""
 
     package = "proxsuite"
+    warm_support = ("ProxQP update(g=, b=, l=, u=) of the model initialised on the same "
+                    "matrices, then solve(x, y, z) from the initial guess (WARM_START)")
 
     def __init__(self, sparse: bool) -> None:
         self.sparse = sparse
@@ -66,37 +74,79 @@ class ProxQPBackend(QPBackend):
         for key, value in settings.options.items():
             setattr(qp.settings, key, value)
 
+    def _init(self, problem: Problem, settings: Settings, warm: bool) -> tuple[Any, TwoSidedForm]:
+        """A ProxQP model initialised on ``problem`` (``warm``: it will be given a guess)."""
+        from proxsuite import proxqp
+
+        form = TwoSidedForm.from_problem(problem)
+        eq, ineq = form.rows("eq"), form.rows("ineq")
+        n_in = form.n_rows - form.n_eq
+        module = proxqp.sparse if self.sparse else proxqp.dense
+        qp = module.QP(form.n, form.n_eq, n_in)
+        self.configure(qp, settings)
+        if self.sparse:
+            H: Any = sp.csc_matrix(problem.P)
+            A_eq: Any = form.matrix[eq]
+            C: Any = form.matrix[ineq]
+        else:
+            H, A_eq, C = problem.P, form.matrix[eq].toarray(), form.matrix[ineq].toarray()
+        if warm:
+            qp.settings.initial_guess = proxqp.InitialGuess.WARM_START
+        qp.init(H, problem.q, A_eq if form.n_eq else None,
+                form.lower[eq] if form.n_eq else None, C if n_in else None,
+                form.lower[ineq] if n_in else None, form.upper[ineq] if n_in else None)
+        return qp, form
+
+    @staticmethod
+    def _solve(qp: Any, form: TwoSidedForm, warm_start: WarmStart | None) -> None:
+        """``qp.solve``, from the initial guess when one is given."""
+        if warm_start is not None and warm_start.x is not None:
+            stacked = form.stack_duals(warm_start.y, warm_start.z, warm_start.z_box)
+            qp.solve(np.asarray(warm_start.x, dtype=float), stacked[form.rows("eq")],
+                     stacked[form.rows("ineq")])
+        else:
+            qp.solve()
+
     def solve(self, problem: Problem, settings: Settings,
               warm_start: WarmStart | None = None) -> Result:
         """Initialise a dense or sparse ProxQP model and solve it once."""
+        watch = Stopwatch()
+        with watch.lap(SETUP):
+            qp, form = self._init(problem, settings,
+                                  warm_start is not None and warm_start.x is not None)
+        with watch.lap(SOLVE):
+            self._solve(qp, form, warm_start)
+        return self._result(problem, watch, qp, form)
+
+    def prepare(self, problem: Problem, settings: Settings) -> tuple[Any, TwoSidedForm]:
+        """The model initialised on ``problem``, set to start from a guess (untimed in a
+        warm cell)."""
+        return self._init(problem, settings, warm=True)
+
+    def resolve(self, prepared: tuple[Any, TwoSidedForm], problem: Problem,
+                settings: Settings, warm_start: WarmStart | None) -> Result:
+        """``qp.update`` with the vectors (setup lap), ``qp.solve`` from the guess (solve
+        lap)."""
+        qp, form = prepared
+        eq, ineq = form.rows("eq"), form.rows("ineq")
+        watch = Stopwatch()
+        with watch.lap(SETUP):
+            lower, upper = two_sided_vectors(form, problem)
+            vectors: dict[str, Any] = {"g": np.asarray(problem.q, dtype=float)}
+            if form.n_eq:
+                vectors["b"] = lower[eq]
+            if form.n_rows > form.n_eq:
+                vectors.update(l=lower[ineq], u=upper[ineq])
+            qp.update(**vectors)
+        with watch.lap(SOLVE):
+            self._solve(qp, form, warm_start)
+        return self._result(problem, watch, qp, form)
+
+    def _result(self, problem: Problem, watch: Stopwatch, qp: Any,
+                form: TwoSidedForm) -> Result:
+        """The :class:`Result` of one ProxQP solve."""
         from proxsuite import proxqp
 
-        watch = Stopwatch()
-        with watch.lap("setup"):
-            form = TwoSidedForm.from_problem(problem)
-            eq, ineq = form.rows("eq"), form.rows("ineq")
-            n_in = form.n_rows - form.n_eq
-            module = proxqp.sparse if self.sparse else proxqp.dense
-            qp = module.QP(form.n, form.n_eq, n_in)
-            self.configure(qp, settings)
-            if self.sparse:
-                H: Any = sp.csc_matrix(problem.P)
-                A_eq: Any = form.matrix[eq]
-                C: Any = form.matrix[ineq]
-            else:
-                H, A_eq, C = problem.P, form.matrix[eq].toarray(), form.matrix[ineq].toarray()
-            warm = warm_start is not None and warm_start.x is not None
-            if warm:
-                qp.settings.initial_guess = proxqp.InitialGuess.WARM_START
-            qp.init(H, problem.q, A_eq if form.n_eq else None,
-                    form.lower[eq] if form.n_eq else None, C if n_in else None,
-                    form.lower[ineq] if n_in else None, form.upper[ineq] if n_in else None)
-        with watch.lap("solve"):
-            if warm_start is not None and warm_start.x is not None:
-                stacked = form.stack_duals(warm_start.y, warm_start.z, None)
-                qp.solve(np.asarray(warm_start.x, dtype=float), stacked[eq], stacked[ineq])
-            else:
-                qp.solve()
         results = qp.results
         info = results.info
         status = str(info.status).split(".")[-1]
@@ -108,7 +158,6 @@ class ProxQPBackend(QPBackend):
                          duals=duals, iterations=info.iter,
                          diagnostics={"solver_primal_residual": float(info.pri_res),
                                       "solver_dual_residual": float(info.dua_res)})
-
 
 register(ProxQPBackend(sparse=False))
 register(ProxQPBackend(sparse=True))

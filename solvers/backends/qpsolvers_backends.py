@@ -29,6 +29,13 @@ building the ``qpsolvers.Problem`` plus qpsolvers' conversion to the solver's fo
 time minus the solver's own ``solve_time``); solve is the solver's own ``solve_time``. For a
 solver whose time qpsolvers does not report the whole call counts as solve.
 
+Warm cells (:class:`~c3bench.solvers.timing.UpdatableBackend`): ``piqp`` only, natively
+(qpsolvers has no update API): a ``piqp.DenseSolver`` set up untimed on the instance with
+the options above; the setup lap is ``solver.update(c=, b=, h_u=, x_l=, x_u=)`` with the
+instance's vectors, the solve lap ``solver.solve()``. PIQP takes no initial guess, so the
+guess is unused. The other solvers here pay a full ``solve_problem`` in warm cells too
+(emulated: their ``warm_support`` says so).
+
 References
 ----------
 S. Caron et al., "qpsolvers: Quadratic Programming Solvers in Python", software, version 4,
@@ -67,10 +74,11 @@ from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import Failure
 from c3bench.solvers.backends._qp_forms import QPBackend, failure_category, qp_result
+from c3bench.solvers.backends._warm_vectors import full_bounds
 from c3bench.solvers.base import Result, Settings, WarmStart, require_module
 from c3bench.solvers.output import quiet_stdout
 from c3bench.solvers.registry import register
-from c3bench.solvers.timing import Stopwatch
+from c3bench.solvers.timing import SETUP, SOLVE, Stopwatch
 
 
 @dataclass(frozen=True)
@@ -223,6 +231,78 @@ class QpsolversBackend(QPBackend):
                          solve_time=inner_solve)
 
 
+PIQP_STATUS_SOLVED = "PIQP_SOLVED"
+"""PIQP's status name of a solved problem."""
+
+
+class PiqpBackend(QpsolversBackend):
+    """PIQP (Schwan et al. 2023): cold cells through qpsolvers like the others, warm cells
+    through PIQP's own ``DenseSolver.update`` (module docstring)."""
+
+    warm_support = ("PIQP DenseSolver.update(c=, b=, h_u=, x_l=, x_u=) of the solver set up "
+                    "on the same matrices (native, not through qpsolvers); no initial guess")
+
+    def _native_settings(self, solver: Any, settings: Settings) -> None:
+        """Set the options qpsolvers would pass (``backend`` excluded) on ``solver``."""
+        for key, value in self.options(settings).items():
+            if key != "backend":
+                setattr(solver.settings, key, value)
+
+    def prepare(self, problem: Problem, settings: Settings) -> Any:
+        """A ``piqp.DenseSolver`` set up on ``problem`` (untimed in a warm cell)."""
+        import piqp
+
+        solver = piqp.DenseSolver()
+        self._native_settings(solver, settings)
+        lb, ub = full_bounds(problem)
+        solver.setup(np.asarray(problem.P, dtype=float), np.asarray(problem.q, dtype=float),
+                     _dense_or_none(problem.A), _vector_or_none(problem.b),
+                     _dense_or_none(problem.G), None, _vector_or_none(problem.h), lb, ub)
+        return solver
+
+    def resolve(self, prepared: Any, problem: Problem, settings: Settings,
+                warm_start: WarmStart | None) -> Result:
+        """``update`` with the vectors (setup lap), ``solve`` (solve lap); the initial
+        guess is unused (PIQP takes none)."""
+        solver = prepared
+        watch = Stopwatch()
+        with watch.lap(SETUP):
+            lb, ub = full_bounds(problem)
+            vectors: dict[str, Any] = {"c": np.asarray(problem.q, dtype=float),
+                                       "x_l": lb, "x_u": ub}
+            if problem.b is not None and problem.n_eq:
+                vectors["b"] = np.asarray(problem.b, dtype=float)
+            if problem.h is not None and problem.n_ineq:
+                vectors["h_u"] = np.asarray(problem.h, dtype=float)
+            solver.update(**vectors)
+        with watch.lap(SOLVE):
+            status = solver.solve()
+        name = str(status).split(".")[-1]
+        result = solver.result
+        found = name == PIQP_STATUS_SOLVED
+        duals = (np.asarray(result.y, dtype=float),
+                 np.asarray(result.z_u, dtype=float) - np.asarray(result.z_l, dtype=float)
+                 if problem.n_ineq else np.zeros(0),
+                 np.asarray(result.z_bu, dtype=float) - np.asarray(result.z_bl, dtype=float))
+        return qp_result(self.name, problem, watch, found=found, status=name,
+                         failure=failure_category(name), x=np.asarray(result.x),
+                         duals=duals, iterations=int(result.info.iter))
+
+
+def _dense_or_none(matrix: Any) -> np.ndarray | None:
+    """A Fortran-ordered float64 copy of ``matrix`` (PIQP's dense input), or ``None``."""
+    if matrix is None or np.size(matrix) == 0:
+        return None
+    return np.asfortranarray(matrix, dtype=float)
+
+
+def _vector_or_none(vector: Any) -> np.ndarray | None:
+    """``vector`` as float64, or ``None`` when absent or empty."""
+    if vector is None or np.size(vector) == 0:
+        return None
+    return np.asarray(vector, dtype=float)
+
+
 @functools.cache
 def _absorb_highs_banner() -> None:
     """HiGHS prints a banner on its first construction in a process: take it here, quietly."""
@@ -239,4 +319,4 @@ def _sized(vector: Any, size: int) -> np.ndarray:
 
 
 for _spec in QPSOLVERS_SPECS:
-    register(QpsolversBackend(_spec))
+    register(PiqpBackend(_spec) if _spec.solver == "piqp" else QpsolversBackend(_spec))

@@ -1,0 +1,111 @@
+"""``c3plus-compiled``: the compiled (numba) kernel driven by the one ADMM loop.
+
+:class:`CompiledC3Plus` has the interface of :class:`c3bench.solvers.fast.FastC3Plus`
+(``solve(lcs, x0, weights, delta, w, fallback_input)``, usable by
+:class:`c3bench.solvers.admm.FastC3PlusController`): the loop of :mod:`.loop` does the dual
+update, residuals, rho schedule, stopping and output; :class:`.compiled.CompiledC3PlusKernel`
+does the QP step and the projection in one compiled call per iteration and factorises a
+geometric schedule's rho values up front in one compiled call. The box limits of
+``mpc.limits`` (``options.use_limits``) go into its projection, ``projection_weights`` (``U``)
+into the pairs' closed form.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from c3bench.problems.lcs import LCSBatch
+from c3bench.problems.mpc import MPC, HorizonLayout
+from c3bench.problems.names import Precision, Variant
+from c3bench.solvers.admm.compiled import CompiledC3PlusKernel
+from c3bench.solvers.admm.controller import solve_batched
+from c3bench.solvers.admm.kernel import StepInputs
+from c3bench.solvers.admm.options import C3Options
+from c3bench.solvers.admm.solution import C3Solution, FastTimings
+from c3bench.solvers.admm.stacked import box_of_step
+from c3bench.solvers.fast import RiccatiOptions
+
+
+class CompiledC3Plus:
+    """Batched C3+ with the compiled kernel (module docstring).
+
+    Parameters
+    ----------
+    mpc
+        Cost, goal, horizon, force limit and (optionally) limits.
+    options
+        :class:`C3Options` (variant ``c3plus``; ``input_bounds`` off: limits go to the
+        projection).
+    precision
+        ``float64`` or ``float32`` (every array and the arithmetic).
+    riccati
+        ``jacobi`` and ``ridge`` of :class:`c3bench.solvers.fast.RiccatiOptions`.
+    shared_inputs
+        Robust variant (consensus on ``u`` in the projection) or independent samples.
+    record_residuals
+        Compute the residuals every iteration even when the schedule does not need them.
+    """
+
+    name = "compiled"
+
+    def __init__(self, mpc: MPC, options: C3Options | None = None,
+                 precision: str = Precision.FLOAT64, riccati: RiccatiOptions | None = None,
+                 shared_inputs: bool = True, record_residuals: bool = False) -> None:
+        options = options or C3Options(keep_iterates=False)
+        if options.variant != Variant.C3PLUS:
+            raise ValueError("CompiledC3Plus runs the c3plus variant only")
+        if options.input_bounds:
+            raise ValueError("CompiledC3Plus does not take input bounds in the QP step (the "
+                             "box limits of mpc.limits go into its projection)")
+        self.mpc = mpc
+        self.options = options
+        self.kernel = CompiledC3PlusKernel(mpc, Precision(precision), riccati)
+        self.kernel.projection_weights = options.projection_weights
+        self.shared_inputs = shared_inputs
+        self.record_residuals = record_residuals
+        self.timings = FastTimings()
+        self.info: dict[str, Any] = {}
+        self.layout = HorizonLayout(mpc.nx, 0, mpc.nu, 0, mpc.horizon)
+        self._lcs: LCSBatch | None = None
+
+    @property
+    def dtype(self) -> Any:
+        return self.kernel.dtype
+
+    @property
+    def compile_seconds(self) -> float:
+        """JIT time spent in this process so far (excluded from step timings)."""
+        return float(self.kernel.compile_seconds)
+
+    def bind(self, lcs: LCSBatch) -> None:
+        """Use ``lcs`` for the next control step."""
+        self._lcs = lcs
+        self.layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, self.mpc.horizon)
+
+    def start(self, inputs: StepInputs) -> None:
+        """Box, state, weights and the planned factorisations (one compiled call)."""
+        assert self._lcs is not None
+        self.kernel.set_box(box_of_step(self.mpc, self.layout, self.options.use_limits))
+        t0 = time.perf_counter()
+        self.kernel.start(self._lcs, inputs.x0, inputs.weights, inputs.shared_inputs,
+                          inputs.plan)
+        self.timings.factor += time.perf_counter() - t0
+
+    def iterate(self, rho: Mapping[str, float], delta: np.ndarray, w: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """QP step and projection of all samples in one compiled call."""
+        t0 = time.perf_counter()
+        out = self.kernel.iterate(rho, delta, w)
+        self.timings.qp_solve += time.perf_counter() - t0
+        return out
+
+    def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
+              delta: np.ndarray | None = None, w: np.ndarray | None = None,
+              fallback_input: np.ndarray | None = None) -> C3Solution:
+        """One control step of the one ADMM (:func:`c3bench.solvers.admm.solve_batched`)."""
+        return solve_batched(self, lcs, self.mpc, x0, self.options, weights, delta, w,
+                             fallback_input, self.shared_inputs, self.record_residuals)

@@ -1,0 +1,299 @@
+"""The consensus ADMM of C3 / C3+, written once (docs/admm.md).
+
+The MPCC of one control step (Aydinoglu and Posa, ICRA 2022; Bui et al. 2025 for C3+) is split
+into a QP over ``z`` (dynamics, no complementarity) and a projection onto complementarity over
+a copy ``delta`` of the horizon steps, with the scaled dual ``w`` and the consensus weight
+``G = diag(rho_x, rho_lam, rho_u, rho_eta)`` (Boyd et al., "Distributed optimization and
+statistical learning via ADMM", 2011, section 3.1.1, scaled form). Iteration ``i``
+(:func:`admm_iteration`):
+
+1. **QP step** ``z = argmin J(z) + sum_k ||z_k - (delta_k - w_k)||^2_G`` s.t. the dynamics
+   (and the limits, where the kernel puts them there);
+2. **projection** ``delta = argmin_{delta in C} ||delta - (z + w)||^2_U`` (``U = G`` unless
+   ``projection_weights`` is given);
+3. **dual update** ``w <- w + z - delta``.
+
+The kernel (:mod:`.kernel`) does steps 1 and 2; this module does step 3 and the rest:
+
+4. **residuals** (Boyd et al. 2011, section 3.3, Boyd's ``rho`` equal to ``2 G``): consensus
+   ``r = ||z - delta||`` and dual ``s = ||2 G (delta - delta_prev)||``, weighted over samples,
+   ``sqrt(sum_j p_j ||.||_j^2)``;
+5. **stopping**: ``fixed`` iterations, or ``residual``: ``r <= sqrt(p) eps_abs + eps_rel
+   max(||z||, ||delta||)`` and ``s <= sqrt(p) eps_abs + eps_rel ||2 G w||`` (Boyd eq. 3.12);
+6. **rho update** by the schedule (:mod:`.schedules`); when ``G`` changes by
+   ``rho_new / rho_old`` the scaled dual is rescaled by ``rho_old / rho_new`` so that
+   ``y = 2 G w`` is unchanged (Boyd et al. 2011, end of section 3.4.1).
+
+**Output**: ``u_0`` of ``delta`` (default) or ``z``; with shared inputs the weighted mean over
+samples; clipped to ``|u_i| <= force_limit`` (``u_raw`` keeps the unclipped value). A kernel
+failure stops the loop and returns the fallback input with ``ok=False``; nothing non-finite is
+returned.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from c3bench.problems.families import weight_vector
+from c3bench.problems.mpc import HorizonLayout
+from c3bench.solvers.admm.kernel import Kernel, KernelFailure, StepInputs
+from c3bench.solvers.admm.options import WEIGHT_FLOOR, C3Options, Output, Stopping
+from c3bench.solvers.admm.schedules import Schedule, schedule_for
+from c3bench.solvers.admm.solution import C3Iterate, C3Solution, C3Trace, FastTimings
+
+
+def dual_update(w: Any, z_steps: Any, delta: Any) -> Any:
+    """Scaled dual ascent ``w + z - delta`` (any array type, (..., T, step size))."""
+    return w + z_steps - delta
+
+
+def admm_iteration(kernel: Any, rho: Any, delta: Any, w: Any) -> tuple[Any, Any, Any, Any]:
+    """One iteration: ``z`` and ``delta_new`` from the kernel, then :func:`dual_update`.
+
+    ``kernel`` is anything with ``iterate(rho, delta, w)`` (:class:`.kernel.Kernel`, or a
+    traced stand-in: a kernel may run this very function inside its own compiled call,
+    ``kernel.fused``, JAX: one device call per iteration; the loop then calls that instead).
+    """
+    z_steps, z_terminal, new_delta = kernel.iterate(rho, delta, w)
+    return z_steps, z_terminal, new_delta, dual_update(w, z_steps, new_delta)
+
+
+def weighted_norm(values: np.ndarray, p: np.ndarray) -> float:
+    """``sqrt(sum_j p_j ||v_j||_2^2)`` over the leading sample axis (float64)."""
+    flat = np.reshape(np.asarray(values), (np.shape(values)[0], -1)).astype(np.float64)
+    return float(np.sqrt(np.dot(p, np.sum(flat * flat, axis=1))))
+
+
+def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -> np.ndarray:
+    """Sample weights scaled to sum 1, floored at ``floor`` times the largest (uniform if None).
+
+    The floor keeps every sample's QP well posed (a zero weight would remove its cost).
+    """
+    if weights is None:
+        return np.full(samples, 1.0 / samples)
+    array = np.asarray(weights, dtype=float)
+    if array.shape != (samples,):
+        raise ValueError(f"weights must have shape ({samples},), got {array.shape}")
+    if not np.all(np.isfinite(array)) or np.any(array < 0) or array.sum() <= 0:
+        raise ValueError("weights must be finite, >= 0 and not all zero")
+    array = array / array.sum()
+    array = np.maximum(array, floor * array.max())
+    normalised: np.ndarray = array / array.sum()
+    return normalised
+
+
+def cold_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
+                  dtype: Any = np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """``delta_k = (x0, 0, 0, 0)`` and ``w = 0``: (S, T, step size) each."""
+    delta = np.zeros((samples, layout.horizon, layout.step_size), dtype=dtype)
+    delta[:, :, layout.index(0, "x")] = np.asarray(x0, dtype=dtype)
+    return delta, np.zeros_like(delta)
+
+
+def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
+                     delta: np.ndarray | None, w: np.ndarray | None, dtype: Any = np.float64
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The given iterates ((S, T, ns) or (T, ns), checked) or a cold start."""
+    start = x0 if np.all(np.isfinite(x0)) else np.zeros(layout.nx)
+    cold = cold_iterates(layout, start, samples, dtype)
+    out = []
+    for name, given, default in (("delta", delta, cold[0]), ("w", w, cold[1])):
+        if given is None:
+            out.append(default)
+            continue
+        array = np.asarray(given)
+        if array.shape == default.shape[1:]:
+            array = np.broadcast_to(array, default.shape)
+        if array.shape != default.shape:
+            raise ValueError(f"{name} must have shape {default.shape[1:]} or {default.shape}, "
+                             f"got {array.shape}")
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"{name} has non-finite entries")
+        out.append(np.array(array, dtype=dtype))
+    return out[0], out[1]
+
+
+def shift_warm_start(delta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shift ``delta`` and ``w`` one step forward in time: drop step 0, repeat the last.
+
+    Arrays are (..., T, step size); ``out[..., k, :] = in[..., k + 1, :]`` for ``k < T - 1``
+    and ``out[..., T - 1, :] = in[..., T - 1, :]``; the dtype is kept.
+    """
+    out = []
+    for array in (np.asarray(delta), np.asarray(w)):
+        shifted = array.copy()
+        shifted[..., :-1, :] = array[..., 1:, :]
+        out.append(shifted)
+    return out[0], out[1]
+
+
+_RATIOS: dict[tuple[Any, ...], np.ndarray] = {}
+
+
+def rescale_dual(w: Any, layout: HorizonLayout, rho_old: Mapping[str, float],
+                 rho_new: Mapping[str, float],
+                 constant: Callable[[np.ndarray], Any] | None = None) -> Any:
+    """``w * G_old / G_new`` blockwise (keeps ``y = 2 G w``); ``w`` is (..., T, step size).
+
+    A block whose weight is 0 before and after keeps its dual (ratio 1). The ratio vectors
+    are memoised by (layout, rho values, dtype): a schedule repeats them every control step.
+    ``constant`` moves the (memoised) ratio to the kernel's device once (JAX).
+    """
+    key = (tuple(layout.block_sizes().items()), tuple(sorted(rho_old.items())),
+           tuple(sorted(rho_new.items())), str(w.dtype))
+    ratio = _RATIOS.get(key)
+    if ratio is None:
+        old = weight_vector(layout, rho_old)
+        new = weight_vector(layout, rho_new)
+        ratio = np.divide(old, new, out=np.ones_like(old), where=new != 0).astype(w.dtype)
+        if len(_RATIOS) > 256:
+            _RATIOS.clear()
+        _RATIOS[key] = ratio
+    return w * (ratio if constant is None else constant(ratio))
+
+
+class _Loop:
+    """The state of one control step's ADMM (:func:`run_admm`)."""
+
+    def __init__(self, kernel: Kernel, options: C3Options, p: np.ndarray,
+                 record_residuals: bool) -> None:
+        self.kernel = kernel
+        self.options = options
+        self.p = p
+        self.schedule: Schedule = schedule_for(options)
+        self.need_residuals = (record_residuals or options.stopping == Stopping.RESIDUAL
+                               or options.rho_schedule != "geometric")
+        self.trace = C3Trace()
+        self.iterates: list[C3Iterate] = []
+
+    def residuals(self, rho: Mapping[str, float], z: Any, delta_old: Any, new_delta: Any
+                  ) -> tuple[float, float, float]:
+        if not self.need_residuals:
+            return math.nan, math.nan, math.nan
+        G = weight_vector(self.kernel.layout, rho)
+        difference = np.asarray(z) - np.asarray(new_delta)
+        consensus = weighted_norm(difference, self.p)
+        dual = weighted_norm(2.0 * G * (np.asarray(new_delta) - np.asarray(delta_old)), self.p)
+        return consensus, float(np.max(np.abs(difference), initial=0.0)), dual
+
+    def converged(self, rho: Mapping[str, float], z: Any, new_delta: Any, new_w: Any,
+                  consensus: float, dual: float) -> bool:
+        options = self.options
+        size = self.kernel.layout.horizon * self.kernel.layout.step_size
+        G = weight_vector(self.kernel.layout, rho)
+        eps_pri = math.sqrt(size) * options.eps_abs + options.eps_rel * max(
+            weighted_norm(np.asarray(z), self.p), weighted_norm(np.asarray(new_delta), self.p))
+        eps_dual = math.sqrt(size) * options.eps_abs + options.eps_rel * weighted_norm(
+            2.0 * G * np.asarray(new_w), self.p)
+        return consensus <= eps_pri and dual <= eps_dual
+
+
+def run_admm(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any, w: Any,
+             fallback_input: np.ndarray, force_limit: float, record_residuals: bool = True
+             ) -> C3Solution:
+    """One control step of the ADMM (module docstring); never raises for a kernel failure.
+
+    Parameters
+    ----------
+    kernel
+        The arithmetic (QP step and projection).
+    options
+        Controller options (schedule, stopping, output, iterations).
+    inputs
+        Per-step data given to ``kernel.start`` (``plan`` is filled in here).
+    delta, w
+        Initial iterates (S, T, step size) in the kernel's array type.
+    fallback_input
+        Returned with ``ok=False`` when a step fails.
+    force_limit
+        ``|u_i|`` clip of the returned input.
+    record_residuals
+        Compute the residuals every iteration even when the schedule does not need them. The
+        per-iteration trace is kept when residuals are computed or iterates kept (a failed
+        iteration is always traced).
+    """
+    started = time.perf_counter()
+    loop = _Loop(kernel, options, inputs.weights, record_residuals)
+    kernel.timings = FastTimings()
+    rho = dict(options.rho0)
+    rho_used = dict(rho)
+    inputs.plan = loop.schedule.plan(rho, options.admm_iterations)
+    z_steps: Any = None
+    z_terminal: Any = None
+    previous: float | None = None
+    status, ok, completed = f"{options.admm_iterations} iterations", True, 0
+    step = getattr(kernel, "fused", None) or admm_iteration
+    constant = getattr(kernel, "constant", None)
+    try:
+        kernel.start(inputs)
+    except KernelFailure as failure:
+        status, ok = f"{failure.kind}: {failure.reason}" if failure.reason else failure.kind, \
+            False
+    for i in range(options.admm_iterations if ok else 0):
+        iteration_start = time.perf_counter()
+        rho_used = dict(rho)
+        try:
+            z, terminal, new_delta, new_w = step(kernel, rho, delta, w)
+        except KernelFailure as failure:
+            message = failure.reason if failure.kind == "QP failed" else str(failure)
+            loop.trace.append(i, rho, failed=True, non_finite=failure.non_finite,
+                              message=message, **failure.info,
+                              iteration_time=time.perf_counter() - iteration_start)
+            status, ok = (f"{failure.kind} at iteration {i}: {failure.reason}"
+                          if failure.reason else f"{failure.kind} at iteration {i}"), False
+            break
+        consensus, consensus_inf, dual = loop.residuals(rho, z, delta, new_delta)
+        if options.keep_iterates:
+            loop.iterates.append(C3Iterate(i, dict(rho), np.array(delta), np.array(w),
+                                           np.array(z), np.array(terminal)))
+        if loop.need_residuals or options.keep_iterates:
+            info = dict(getattr(kernel, "info", {}) or {})
+            loop.trace.append(i, rho, consensus_residual=consensus,
+                              consensus_residual_inf=consensus_inf, dual_residual=dual,
+                              iteration_time=time.perf_counter() - iteration_start, **info)
+        delta, w, z_steps, z_terminal = new_delta, new_w, z, terminal
+        completed = i + 1
+        if options.stopping == Stopping.RESIDUAL and loop.converged(
+                rho, z, new_delta, new_w, consensus, dual):
+            status = f"converged in {completed} iterations (r={consensus:.3g}, s={dual:.3g})"
+            break
+        if i + 1 < options.admm_iterations:
+            updated = loop.schedule.next(rho, consensus, previous, dual)
+            if options.rescale_dual and updated != rho:
+                w = rescale_dual(w, kernel.layout, rho, updated, constant)
+            rho = updated
+        previous = consensus
+    else:
+        if ok and options.stopping == Stopping.RESIDUAL:
+            status = f"iteration limit {options.admm_iterations} reached"
+    u, u_raw, ok, status = _output(kernel, options, inputs, delta, z_steps, ok, status,
+                                   fallback_input, force_limit)
+    kernel.timings.total = time.perf_counter() - started
+    return C3Solution(u=u, u_raw=u_raw, ok=ok, status=status, iterations=completed,
+                      delta=delta, w=w, z_steps=z_steps, z_terminal=z_terminal, rho=rho_used,
+                      weights=inputs.weights, layout=kernel.layout, variant=options.variant,
+                      trace=loop.trace, iterates=loop.iterates,
+                      cache_hits=int(getattr(kernel, "step_cache_hits", 0)),
+                      cache_misses=int(getattr(kernel, "step_cache_misses", 0)),
+                      timings=kernel.timings, kernel=kernel.name)
+
+
+def _output(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any, z_steps: Any,
+            ok: bool, status: str, fallback: np.ndarray, force_limit: float
+            ) -> tuple[np.ndarray, np.ndarray | None, bool, str]:
+    """The applied input: ``u_0`` of ``delta`` or ``z``, averaged over shared samples, clipped."""
+    u = np.asarray(fallback, dtype=float).copy()
+    if not ok or z_steps is None:
+        return u, None, ok, status
+    u_slice = kernel.layout.index(0, "u")
+    source = delta if options.output == Output.DELTA else z_steps
+    first = np.asarray(source)[:, 0, u_slice].astype(np.float64)
+    u_raw = inputs.weights @ first if inputs.shared_inputs else first
+    if not np.all(np.isfinite(u_raw)):
+        return u, None, False, "non-finite input"
+    return np.clip(u_raw, -force_limit, force_limit), u_raw, ok, status

@@ -1,0 +1,223 @@
+"""Tests of the compiled (numba) C3+ kernel (solvers/admm/compiled.py): one iteration equals the
+numpy Riccati QP step of :class:`FastC3Plus` followed by the closed-form C3+ projection and the
+shared-input mean (an independent implementation of the same maths), on contact-rich states of
+the scripted push and on random LCS batches; failures raise :class:`KernelFailure`. No timing."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from c3bench.problems.config import load_config
+from c3bench.problems.errors import InputError
+from c3bench.problems.lcs import LCSBatch
+from c3bench.problems.linearize_batch import BatchLinearizer
+from c3bench.problems.mpc import MPC
+from c3bench.problems.names import Precision
+from c3bench.problems.scene import build_mpc, build_scene
+from c3bench.problems.suites import sample_states, scripted_push
+from c3bench.solvers.admm.compiled import CompiledC3PlusKernel, KernelFailure, warm_up
+from c3bench.solvers.fast import FastC3Plus, RiccatiOptions, project_c3plus_batch
+
+TOLERANCE = {Precision.FLOAT64: 1e-9, Precision.FLOAT32: 2e-3}
+"""Relative agreement with the float64 reference (float32: a few hundred float32 ulps of the
+conditioning-scaled solution, measured at most 1.2e-4)."""
+
+
+def _relative(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(np.asarray(a, dtype=float) - b)) / max(1.0, np.max(np.abs(b))))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def compiled() -> None:
+    assert warm_up() >= 0.0
+
+
+@pytest.fixture(scope="module")
+def push() -> SimpleNamespace:
+    """Contact-rich states of the scripted push, batches of 1, 3 and 16 cube sides."""
+    config = load_config()
+    record = scripted_push(config)
+    mpc = build_mpc(build_scene(l=0.29, config=config), config.mpc)
+    index = sample_states(record, 3, 0.02)[1]
+    x0, u = record.states[index], record.inputs[index]
+    batches = {n: BatchLinearizer(list(np.linspace(0.27, 0.33, n)) if n > 1 else [0.29],
+                                  config).linearize(x0, u, config.mpc.dt) for n in (1, 3, 16)}
+    return SimpleNamespace(mpc=mpc, x0=x0, batches=batches)
+
+
+def _random_problem(n: int, seed: int) -> tuple[MPC, LCSBatch, np.ndarray]:
+    """A random MPC (nx=4, nu=2, T=5) and ``n`` random LCS with nlam=3."""
+    rng = np.random.default_rng(seed)
+    nx, nu, nlam, T = 4, 2, 3, 5
+    Q = np.diag(rng.uniform(0.5, 2.0, nx))
+    mpc = MPC(Q=Q, R=np.diag(rng.uniform(0.1, 1.0, nu)), Q_f=3 * Q,
+              x_target=rng.normal(size=nx), horizon=T, dt=0.05, force_limit=10.0)
+    F = np.eye(nlam) + 0.1 * rng.normal(size=(n, nlam, nlam))
+    lcs = LCSBatch(A=np.eye(nx) + 0.1 * rng.normal(size=(n, nx, nx)),
+                   B=rng.normal(size=(n, nx, nu)), D=rng.normal(size=(n, nx, nlam)),
+                   d=0.1 * rng.normal(size=(n, nx)), E=rng.normal(size=(n, nlam, nx)),
+                   F=F @ np.swapaxes(F, 1, 2), H=rng.normal(size=(n, nlam, nu)),
+                   c=rng.normal(size=(n, nlam)), dt=0.05)
+    return mpc, lcs, rng.normal(size=nx)
+
+
+def _reference(mpc: MPC, lcs: LCSBatch, x0: np.ndarray, rho: Mapping[str, float],
+               delta: np.ndarray, w: np.ndarray, p: np.ndarray, shared: bool
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """float64 FastC3Plus QP step + closed-form projection + shared-input mean."""
+    fast = FastC3Plus(mpc, riccati=RiccatiOptions())
+    steps, terminal = fast.qp_step(lcs, rho, x0, delta, w)
+    v = steps + w
+    nx, nlam, nu = lcs.nx, lcs.nlam, lcs.nu
+    projected = project_c3plus_batch(v, nx, nlam, nu, rho["lam"], rho["eta"])
+    if shared and lcs.n_samples > 1:
+        u_s = slice(nx + nlam, nx + nlam + nu)
+        projected[:, :, u_s] = np.tensordot(p, v[:, :, u_s], axes=(0, 0))
+    return steps, terminal, projected
+
+
+def _warm_iterates(lcs: LCSBatch, T: int, x0: np.ndarray, seed: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    ns = lcs.nx + 2 * lcs.nlam + lcs.nu
+    delta = rng.normal(size=(lcs.n_samples, T, ns))
+    delta[:, :, :lcs.nx] += x0
+    return delta, 0.1 * rng.normal(size=delta.shape)
+
+
+def _check(mpc: MPC, lcs: LCSBatch, x0: np.ndarray, precision: Precision, shared: bool,
+           seed: int) -> None:
+    n = lcs.n_samples
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None and len(plan) >= 3
+    off_plan = {**plan[0], "lam": 7.0, "u": 0.3}
+    p = np.random.default_rng(seed).uniform(0.5, 1.5, n)
+    p /= p.sum()
+    delta, w = _warm_iterates(lcs, mpc.horizon, x0, seed)
+    kernel = CompiledC3PlusKernel(mpc, precision)
+    kernel.start(lcs, x0, p, shared, plan)
+    dtype = precision.dtype
+    for rho in (plan[0], plan[len(plan) // 2], plan[-1], off_plan, off_plan):
+        expected = _reference(mpc, lcs, x0, rho, delta, w, p, shared)
+        got = kernel.iterate(rho, delta.astype(dtype), w.astype(dtype))
+        for name, ours, theirs in zip(("z_steps", "z_terminal", "new_delta"), got, expected,
+                                      strict=True):
+            assert ours.dtype == dtype and ours.shape == theirs.shape, name
+            assert _relative(ours, theirs) <= TOLERANCE[precision], (name, rho, n, shared)
+    assert len(kernel._off_plan) == 1  # the repeated off-plan rho came from the cache
+    if shared and n > 1:
+        u_s = slice(lcs.nx + lcs.nlam, lcs.nx + lcs.nlam + lcs.nu)
+        assert np.ptp(got[2][:, :, u_s], axis=0).max() == 0.0  # one input for every sample
+
+
+@pytest.mark.parametrize("precision", list(Precision))
+@pytest.mark.parametrize("shared", [True, False])
+@pytest.mark.parametrize("n", [1, 3, 16])
+def test_iterate_equals_riccati_step_and_projection(push: SimpleNamespace, n: int,
+                                                    shared: bool, precision: Precision) -> None:
+    _check(push.mpc, push.batches[n], push.x0, precision, shared, seed=n)
+
+
+@pytest.mark.parametrize("precision", list(Precision))
+@pytest.mark.parametrize("n", [1, 3, 16])
+def test_iterate_on_random_lcs_batches(n: int, precision: Precision) -> None:
+    mpc, lcs, x0 = _random_problem(n, seed=10 + n)
+    _check(mpc, lcs, x0, precision, shared=True, seed=n)
+
+
+def test_ridge_and_no_jacobi_match_the_reference(push: SimpleNamespace) -> None:
+    lcs, x0, mpc = push.batches[3], push.x0, push.mpc
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None
+    delta, w = _warm_iterates(lcs, mpc.horizon, x0, 5)
+    for options in (RiccatiOptions(jacobi=False), RiccatiOptions(ridge=1e-6)):
+        kernel = CompiledC3PlusKernel(mpc, riccati=options)
+        kernel.start(lcs, x0, np.full(3, 1 / 3), False, plan)
+        fast = FastC3Plus(mpc, riccati=options)
+        steps, terminal = fast.qp_step(lcs, plan[1], x0, delta, w)
+        z_steps, z_terminal, _ = kernel.iterate(plan[1], delta, w)
+        assert _relative(z_steps, steps) <= 1e-9
+        assert _relative(z_terminal, terminal) <= 1e-9
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_box_clips_states_and_inputs(push: SimpleNamespace, shared: bool) -> None:
+    mpc, lcs, x0 = push.mpc, push.batches[3], push.x0
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None
+    delta, w = _warm_iterates(lcs, mpc.horizon, x0, 11)
+    p = np.array([0.2, 0.3, 0.5])
+    _, _, free = _reference(mpc, lcs, x0, plan[2], delta, w, p, shared)
+    nx, nlam, nu = lcs.nx, lcs.nlam, lcs.nu
+    x_s, u_s = slice(0, nx), slice(nx + nlam, nx + nlam + nu)
+    lower = np.concatenate([np.quantile(free[..., x_s], 0.3, axis=(0, 1)),
+                            np.quantile(free[..., u_s], 0.3, axis=(0, 1))])
+    upper = np.concatenate([np.quantile(free[..., x_s], 0.7, axis=(0, 1)), [np.inf] * nu])
+    lower[1] = -np.inf  # an unbounded side
+    kernel = CompiledC3PlusKernel(mpc, box=(lower, upper))
+    kernel.start(lcs, x0, p, shared, plan)
+    _, _, got = kernel.iterate(plan[2], delta, w)
+    expected = free.copy()
+    expected[..., x_s] = np.clip(free[..., x_s], lower[:nx], upper[:nx])
+    expected[..., u_s] = np.clip(free[..., u_s], lower[nx:], upper[nx:])
+    assert np.any(expected != free)  # the box is active
+    assert _relative(got, expected) <= 1e-9
+    with pytest.raises(InputError, match="box"):
+        CompiledC3PlusKernel(mpc, box=(upper, lower))
+
+
+def test_start_reuses_buffers_and_refactorises(push: SimpleNamespace) -> None:
+    mpc, x0 = push.mpc, push.x0
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None
+    kernel = CompiledC3PlusKernel(mpc)
+    lcs3 = push.batches[3]
+    kernel.start(lcs3, x0, np.full(3, 1 / 3), True, plan)
+    delta, w = _warm_iterates(lcs3, mpc.horizon, x0, 7)
+    first = kernel.iterate(plan[0], delta, w)
+    kernel.start(push.batches[16], x0, np.full(16, 1 / 16), True, plan)  # other shapes
+    kernel.start(lcs3, x0, np.full(3, 1 / 3), True, plan)
+    kernel.start(lcs3, x0, np.full(3, 1 / 3), True, plan)
+    again = kernel.iterate(plan[0], delta, w)
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+    reused = kernel._planned
+    kernel.start(lcs3, x0, np.full(3, 1 / 3), True, plan)
+    assert kernel._planned is reused  # same shapes: the same preallocated arrays
+
+
+def test_indefinite_stage_hessian_raises(push: SimpleNamespace) -> None:
+    mpc = push.mpc
+    negative = MPC(Q=mpc.Q, R=-1e4 * np.eye(mpc.nu), Q_f=mpc.Q_f, x_target=mpc.x_target,
+                   horizon=mpc.horizon, dt=mpc.dt, force_limit=mpc.force_limit)
+    lcs = push.batches[3]
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None
+    delta, w = _warm_iterates(lcs, mpc.horizon, push.x0, 3)
+    for precision in Precision:
+        kernel = CompiledC3PlusKernel(negative, precision)
+        kernel.start(lcs, push.x0, np.full(3, 1 / 3), True, plan)  # failure surfaces per rho
+        with pytest.raises(KernelFailure, match="Cholesky"):
+            kernel.iterate(plan[0], delta, w)
+        with pytest.raises(KernelFailure, match="Cholesky"):
+            kernel.iterate({**plan[0], "lam": 3.0}, delta, w)  # off the plan
+
+
+def test_non_finite_inputs_raise(push: SimpleNamespace) -> None:
+    mpc, lcs = push.mpc, push.batches[1]
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None
+    kernel = CompiledC3PlusKernel(mpc)
+    x0 = push.x0.copy()
+    x0[2] = np.nan
+    with pytest.raises(KernelFailure, match="x0"):
+        kernel.start(lcs, x0, np.ones(1), True, plan)
+    kernel.start(lcs, push.x0, np.ones(1), True, plan)
+    delta, w = _warm_iterates(lcs, mpc.horizon, push.x0, 1)
+    w[0, 3, 0] = np.inf
+    with pytest.raises(KernelFailure, match="non-finite"):
+        kernel.iterate(plan[0], delta, w)
