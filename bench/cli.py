@@ -200,7 +200,8 @@ def cmd_perf(args: argparse.Namespace) -> int:
                             precisions=tuple(args.precision), device=args.device,
                             repeats=args.repeats, warmup=args.warmup,
                             iterations=args.iterations, reference_budget=args.reference_budget,
-                            seed=args.seed, results_dir=Path(args.results), cpu=args.cpu)
+                            seed=args.seed, results_dir=Path(args.results), cpu=args.cpu,
+                            weighting=args.weighting)
     frame = run_perf(settings)
     runs = {str(run) for run in frame["run_id"]}
     written = [*(path for path in perf_store.perf_run_files(settings.results_dir)
@@ -316,6 +317,11 @@ def _add_perf(sub: Any) -> None:
                            f"(default: {defaults.reference_budget:g})")
     perf.add_argument("--seed", type=nonnegative_int, default=defaults.seed, metavar="N",
                       help=f"seed of the sampled cube sides (default: {defaults.seed})")
+    perf.add_argument("--weighting", action=argparse.BooleanOptionalAction,
+                      default=defaults.weighting,
+                      help="weight the samples of each step with n > 1 by their LCP "
+                           "prediction error over the last 5 observed transitions, as the "
+                           "robust closed loop does (default: on)")
     perf.add_argument("--cpu", type=nonnegative_int, default=None, metavar="CORE",
                       help="pin the process to this CPU core; XLA may otherwise use a "
                            "second core for the JAX backend")
@@ -366,6 +372,9 @@ def _add_closed_loop(sub: Any) -> None:
                       help="seconds per QP (and C3 projection) solve, run in an isolated "
                            "child; a solve that overruns is killed and the step falls back "
                            f"(default: {spec.qp_time_limit:g})")
+    loop.add_argument("--contact-model", default="anitescu", metavar="MODEL",
+                      help="contact model of the controller's LCS: anitescu (default) or "
+                           "stewart-trinkle")
     loop.add_argument("--seed", type=nonnegative_int, default=spec.seed, metavar="N",
                       help=f"seed of the sampled model sides (default: {spec.seed})")
     loop.add_argument("--config", default=None, metavar="FILE",
@@ -392,6 +401,9 @@ def _add_closed_loop(sub: Any) -> None:
                         help=f"robust variants: sampled models (default: {spec.samples})")
     trials.add_argument("--feedback", action="store_true",
                         help="low-level PD tracking of the plan's ball motion between steps")
+    trials.add_argument("--contact-model", default="anitescu", metavar="MODEL",
+                        help="contact model of the controller's LCS: anitescu (default) or "
+                             "stewart-trinkle")
     trials.add_argument("--trials", type=positive_int, default=20, metavar="N",
                         help="episodes (default: 20)")
     trials.add_argument("--seed", type=nonnegative_int, default=0, metavar="S",

@@ -68,6 +68,13 @@ def metric_lines(metrics: Any) -> list[str]:
     ]
 
 
+def contact_model_option(args: argparse.Namespace) -> str:
+    """The ``--contact-model`` of ``args`` (``anitescu`` when the parser has no such option);
+    :class:`ControllerSpec` checks it (one-line :class:`InputError`, exit 2, on a bad
+    value)."""
+    return str(getattr(args, "contact_model", None) or "anitescu")
+
+
 def cmd_closed_loop(args: argparse.Namespace) -> int:
     """Drive the MuJoCo cube with one controller and write the run's records."""
     from c3bench.bench.closed_loop import (
@@ -86,7 +93,8 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
                           admm_iterations=args.iterations, model_l=args.model_l,
                           samples=args.samples, weighting=not args.no_weighting,
                           seed=args.seed, feedback=args.feedback,
-                          qp_time_limit=args.qp_time_limit)
+                          qp_time_limit=args.qp_time_limit,
+                          contact_model=contact_model_option(args))
     control_steps(args.duration, config.mpc.dt, "--duration")
     check_backends(spec)
     runs = writable_directory(store.closed_loop_dir(args.results, "runs"), "--results")
@@ -98,6 +106,7 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
     out = runs / spec.label()
     write_run(out, trajectory, records, scene, run_summary(spec, trajectory, outcome))
     print(f"controller        {spec.label()}")
+    print(f"contact model     {spec.contact_model} (the controller's LCS)")
     print(f"success           {'yes' if outcome.success else 'no'}")
     if outcome.metrics is not None:
         for line in metric_lines(outcome.metrics):
@@ -174,7 +183,7 @@ def cmd_closed_loop_trials(args: argparse.Namespace) -> int:
 
     spec = ControllerSpec(controller=args.controller, qp_backend=args.qp_backend,
                           model_l=args.model_l, samples=args.samples,
-                          feedback=args.feedback)
+                          feedback=args.feedback, contact_model=contact_model_option(args))
     config = load_config()
     control_steps(args.duration, config.mpc.dt, "--duration")
     rules = SuccessRules(hold_time=args.hold_time)
@@ -184,7 +193,7 @@ def cmd_closed_loop_trials(args: argparse.Namespace) -> int:
     cases = trial_cases(spec, args.trials, args.seed, args.duration, rules.hold_time)
     run = run_cases(cases, directory, jobs=args.jobs, scheduler=args.scheduler,
                     rerun=args.rerun, progress=not args.quiet)
-    print(f"controller      {spec.label()}")
+    print(f"controller      {spec.label()} (contact model {spec.contact_model})")
     print(f"trials          {args.trials} (seed {args.seed}, {args.duration:g} s each, hold "
           f"{rules.hold_time:g} s; {run.skipped} stored)")
     if args.duration < rules.min_duration:

@@ -61,21 +61,25 @@ def read_instance_dir(directory: Path, skip_bad: bool) -> list[Problem]:
 
 
 def instance_table(directory: Path, skip_bad: bool = False) -> pd.DataFrame:
-    """Per family: count, variables, equality and inequality rows, bounded variables, pairs.
+    """Per family and variant: count, variables, equality and inequality rows, bounded
+    variables, pairs.
 
-    Sizes that vary within a family are shown as ``min-max``.
+    The variant is ``meta["variant"]`` (``bounded`` / ``equality`` for the QP steps, ``c3`` /
+    ``c3plus`` for projections, ``bounded`` for an mpcc built with limits; ``-`` where an
+    instance has none). Sizes that vary within a group are shown as ``min-max``.
     """
     columns = ["variables", "equality_rows", "inequality_rows", "bounded_variables",
                "complementarity_pairs"]
-    rows = [p.summary() for p in read_instance_dir(directory, skip_bad)]
+    rows = [dict(p.summary(), variant=str(p.meta.get("variant", "-")))
+            for p in read_instance_dir(directory, skip_bad)]
     if not rows:
-        return pd.DataFrame(columns=["family", "count", *columns])
+        return pd.DataFrame(columns=["family", "variant", "count", *columns])
 
     def span(values: pd.Series) -> str:
         low, high = int(values.min()), int(values.max())
         return str(low) if low == high else f"{low}-{high}"
 
-    table = pd.DataFrame(rows).groupby("family", sort=True).agg(
+    table = pd.DataFrame(rows).groupby(["family", "variant"], sort=True).agg(
         count=("name", "size"), **{c: (c, span) for c in columns})
     return table.reset_index()
 
@@ -215,8 +219,10 @@ def add_problems(sub: Any) -> None:
                                "families (default: controller)")
     add_quiet(generate)
     generate.set_defaults(handler=cmd_problems_generate)
-    listing = problems_sub.add_parser("list", help="table of instances by family",
-                                      description="Per family: count, variables, rows, pairs.")
+    listing = problems_sub.add_parser(
+        "list", help="table of instances by family and variant",
+        description="Per family and variant: count, variables, equality and inequality rows, "
+                    "bounded variables, pairs.")
     listing.add_argument("directory", metavar="DIR", help="directory holding instances")
     add_skip_bad(listing)
     listing.set_defaults(handler=cmd_problems_list)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +50,7 @@ from c3bench.bench.closed_loop_policy import (
     CONTROLLERS,
     FAST_CONTROLLERS,
     ROBUST_CONTROLLERS,
+    ContactModelOption,
     ControllerSpec,
     Policy,
     make_policy,
@@ -65,7 +66,8 @@ from c3bench.solvers.timing import single_thread_blas
 
 __all__ = [
     "CONTROLLERS", "FAILURE_MODES", "FAST_CONTROLLERS", "ROBUST_CONTROLLERS",
-    "ClosedLoopOutcome", "ControllerSpec", "FailureRules", "PhysicalMetrics", "Policy",
+    "ClosedLoopOutcome", "ContactModelOption", "ControllerSpec", "FailureRules",
+    "PhysicalMetrics", "Policy",
     "StepRecord", "SuccessRules", "Trajectory", "cube_geometry", "label_failure_mode",
     "make_policy", "pd_tracking_law", "planned_ball_state", "records_frame", "render_run",
     "run_closed_loop", "run_signals", "run_summary", "simulate", "step_backends",
@@ -410,7 +412,7 @@ def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
     check_backends(spec)
     plant_cfg = plant_config or cfg
     if plant_cfg.mpc != cfg.mpc:
-        plant_cfg = Config(scene=plant_cfg.scene, mpc=cfg.mpc)
+        plant_cfg = replace(plant_cfg, mpc=cfg.mpc)
     plant_scene = build_scene(config=plant_cfg)
     with step_backends(spec) as backends:
         policy = make_policy(spec, cfg, backends)
@@ -498,12 +500,14 @@ def write_run(out_dir: str | Path, trajectory: Trajectory, records: list[StepRec
 
 def run_summary(spec: ControllerSpec, trajectory: Trajectory,
                 outcome: ClosedLoopOutcome) -> dict[str, Any]:
-    """The ``summary.json`` of a single ``c3bench closed-loop`` run."""
+    """The ``summary.json`` of a single ``c3bench closed-loop`` run (``contact_model``: the
+    controller's LCS contact model, also in ``spec``)."""
     from dataclasses import asdict
 
     outcome_fields = {key: value for key, value in asdict(outcome).items()
                       if key != "metrics"}
-    return {"spec": asdict(spec), "outcome": outcome_fields,
+    return {"spec": asdict(spec), "contact_model": spec.contact_model,
+            "outcome": outcome_fields,
             "metrics": asdict(outcome.metrics) if outcome.metrics is not None else {},
             "failure_label": outcome.failure_label,
             "final_state": trajectory.states[-1].tolist()}

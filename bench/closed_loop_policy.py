@@ -17,12 +17,14 @@ import numbers
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from c3bench.problems.config import Config
 from c3bench.problems.errors import InputError
+from c3bench.problems.lcs import ContactModel
 from c3bench.problems.names import Variant
 from c3bench.problems.scene import Scene, build_scene
 
@@ -33,6 +35,34 @@ CONTROLLERS: tuple[str, ...] = ("c3", "c3plus", "c3plus-robust", "c3plus-fast",
                                  "c3plus-fast-robust")
 ROBUST_CONTROLLERS: tuple[str, ...] = ("c3plus-robust", "c3plus-fast-robust")
 FAST_CONTROLLERS: tuple[str, ...] = ("c3plus-fast", "c3plus-fast-robust")
+
+
+class ContactModelOption(StrEnum):
+    """``--contact-model``: the contact model of the controller's LCS
+    (:func:`c3bench.problems.lcs.assemble_lcs`). Anitescu's relaxation (default) makes a
+    sliding contact separate at ``mu |v_t|`` (docs/lcs.md); Stewart-Trinkle keeps it closed
+    at the price of a slack per contact (``nlam`` grows from ``contacts x directions`` to
+    ``contacts x (directions + 2)``)."""
+
+    ANITESCU = "anitescu"
+    STEWART_TRINKLE = "stewart-trinkle"
+
+    @property
+    def lcs_name(self) -> ContactModel:
+        """The name :func:`c3bench.problems.linearize.linearize` takes."""
+        return "anitescu" if self is ContactModelOption.ANITESCU else "stewart_trinkle"
+
+    @classmethod
+    def parse(cls, value: str) -> ContactModelOption:
+        """``value`` (``stewart_trinkle`` accepted for ``stewart-trinkle``) as an option;
+        :class:`InputError` naming ``--contact-model`` otherwise."""
+        text = value.replace("_", "-") if isinstance(value, str) else value
+        try:
+            return cls(text)
+        except ValueError:
+            raise InputError(f"--contact-model must be one of "
+                             f"{', '.join(m.value for m in cls)}, got {value!r}") from None
+
 
 Policy = Callable[[np.ndarray, float], tuple[np.ndarray, dict[str, Any]]]
 """``policy(x, t) -> (u, info)``; ``info`` may carry ``lcs_time``, ``solve_time``, ``ok``,
@@ -73,6 +103,9 @@ class ControllerSpec:
         ``dt`` and ``v_ref`` is the plan's ``x_1`` ball velocity (weighted over samples).
         Without it ``u_0`` is held for ``dt`` (zero-order hold). The reference study's optimised
         gain ``K`` regularised toward a PD law is not implemented.
+    contact_model
+        The controller's LCS contact model, a :class:`ContactModelOption` value
+        (``anitescu`` or ``stewart-trinkle``; the plant is MuJoCo either way).
     qp_time_limit
         Wall-clock seconds allowed to each solve of the QP backend (and of C3's projection
         backend) in :func:`bench.closed_loop.run_closed_loop`: the backend then runs in a
@@ -110,11 +143,14 @@ class ControllerSpec:
     feedback_kp: float = 100.0
     feedback_kd: float = 20.0
     qp_time_limit: float | None = 10.0
+    contact_model: str = ContactModelOption.ANITESCU.value
 
     def __post_init__(self) -> None:
         """Check every field (:class:`InputError` naming the option and the allowed range)."""
         from c3bench.solvers.c3 import RHO_SCHEDULES
 
+        object.__setattr__(self, "contact_model",
+                           ContactModelOption.parse(self.contact_model).value)
         if self.controller not in CONTROLLERS:
             raise InputError(f"--controller must be one of {', '.join(CONTROLLERS)}, got "
                              f"{self.controller!r}")
@@ -151,9 +187,15 @@ class ControllerSpec:
 
     def label(self) -> str:
         extra = f"-n{self.samples}" if self.robust else f"-l{self.model_l:g}"
-        backend = "riccati" if self.controller in FAST_CONTROLLERS else self.qp_backend
+        backend = "compiled" if self.controller in FAST_CONTROLLERS else self.qp_backend
         feedback = "-pd" if self.feedback else ""
-        return f"{self.controller}-{backend}-{self.rho_schedule}{extra}{feedback}"
+        contact = "" if self.contact_model == ContactModelOption.ANITESCU else "-st"
+        return f"{self.controller}-{backend}-{self.rho_schedule}{extra}{feedback}{contact}"
+
+    @property
+    def lcs_contact_model(self) -> ContactModel:
+        """The contact model's name for the LCS builders."""
+        return ContactModelOption(self.contact_model).lcs_name
 
 
 @contextlib.contextmanager
@@ -201,9 +243,11 @@ def make_policy(spec: ControllerSpec, config: Config,
 
     The LCS is built at ``(x, u_prev)`` every control step (``lcs_time``); the controller warm
     starts from its previous step. The robust variants weight their samples by the one-step
-    LCP prediction error on the last five observed transitions ``(x_t, u_t, x_{t+1})``. The
-    reference controller (:mod:`solvers.c3`) and the fast path (:mod:`solvers.fast`, batched
-    LCS build) differ only in how the models are built and the step is solved.
+    LCP prediction error on the last five observed transitions ``(x_t, u_t, x_{t+1})`` (one
+    compiled call, :mod:`solvers.lcp_batch`). The reference controller (the reference kernel
+    of :mod:`solvers.admm`, any registry QP backend) and the fast path (the compiled kernel
+    :class:`solvers.admm.compiled_solver.CompiledC3Plus`, batched LCS build) run the same
+    ADMM loop and differ only in how the models are built and the kernel.
 
     ``backends`` replaces registry backends by name (:func:`step_backends`, which
     :func:`bench.closed_loop.run_closed_loop` uses); without it the registry's backends run
@@ -218,11 +262,14 @@ def make_policy(spec: ControllerSpec, config: Config,
     dt = config.mpc.dt
     if spec.controller in FAST_CONTROLLERS:
         from c3bench.problems.linearize_batch import BatchLinearizer
-        from c3bench.solvers.fast import FastC3Plus, FastC3PlusController, fast_options
+        from c3bench.solvers.admm.compiled_solver import CompiledC3Plus
+        from c3bench.solvers.fast import FastC3PlusController, fast_options
+        from c3bench.solvers.lcp_batch import warm_up
 
-        linearizer = BatchLinearizer(sides, config)
-        fast = FastC3PlusController(FastC3Plus(mpc, fast_options(
+        linearizer = BatchLinearizer(sides, config, contact_model=spec.lcs_contact_model)
+        fast = FastC3PlusController(CompiledC3Plus(mpc, fast_options(
             rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations)))
+        warm_up()  # the compiled Lemke of the weighting: loaded once, outside the steps
 
         def models_at(x: np.ndarray, u: np.ndarray) -> Any:
             return linearizer.linearize(x, u, dt)
@@ -244,7 +291,7 @@ def make_policy(spec: ControllerSpec, config: Config,
             keep_iterates=False, backends=dict(backends or {})))
 
         def models_at(x: np.ndarray, u: np.ndarray) -> Any:
-            return [linearize(model, x, u, dt) for model in scenes]
+            return [linearize(model, x, u, dt, spec.lcs_contact_model) for model in scenes]
 
         def samples_of(models: Any) -> list[Any]:
             return models
@@ -267,7 +314,8 @@ def make_policy(spec: ControllerSpec, config: Config,
         start = time.perf_counter()
         weights: Sequence[float] | None = None
         if spec.robust and spec.weighting:
-            weights = lcp_prediction_weights(samples_of(models), history[-5:]).tolist()
+            # an LCSBatch (fast path) or a list of LCS: the compiled weighting takes either
+            weights = lcp_prediction_weights(models, history[-5:]).tolist()
         weight_time = time.perf_counter() - start
         solution = solve(models, weights, x)
         solve_time = time.perf_counter() - start

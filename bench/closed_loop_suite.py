@@ -221,13 +221,14 @@ def case_row(case: Case) -> dict[str, Any]:
     spec = case.spec
     fast = spec.controller.startswith("c3plus-fast")
     return {"case": case.name, "group": case.group, "controller": spec.controller,
-            "qp_backend": "riccati" if fast else spec.qp_backend,
+            "qp_backend": "compiled" if fast else spec.qp_backend,
             "projection": spec.projection if spec.controller == "c3" else "closed_form",
             "rho_schedule": spec.rho_schedule,
             "model_l": float("nan") if spec.robust else spec.model_l,
             "samples": spec.samples if spec.robust else 1,
             "weighting": spec.weighting if spec.robust else False,
             "feedback": spec.feedback,
+            "contact_model": spec.contact_model,
             "qp_time_limit": float("nan") if fast or spec.qp_time_limit is None
             else spec.qp_time_limit,
             "dt": case.dt, "q_cube_pose": case.q_cube_pose, "seed": case.seed,

@@ -36,10 +36,19 @@ Ranked time
 Every ranking (time columns, performance profiles, ``compare``, Pareto plots, budgets) reads
 the time of a cell through :func:`ranked_time`, i.e. the column :data:`RANKED_TIME_COLUMN`;
 changing what the benchmark ranks by is a change of that one constant. It is
-``total_time = setup_time + solve_time`` (the timing contract of :mod:`solvers.timing`): the
-time a C3 / C3+ controller pays, since its QP matrices change with ``rho`` at every ADMM
-iteration. ``warm`` cells are ranked by the same total (their backends get an initial guess
-but build their solver objects afresh, as in a cold cell).
+``total_time = setup_time + solve_time`` (the timing contract of :mod:`solvers.timing`), and
+the column means what a caller pays for the cell's **start mode** (:data:`RANKED_TIME_MEANING`):
+
+* ``cold``: setup + solve of a fresh solver object, what a C3 / C3+ controller pays, since
+  its QP matrices change with ``rho`` at every ADMM iteration;
+* ``warm``: what a solver pays when only the vectors change: a solver object set up on the
+  same matrices (untimed) takes the instance's ``q``, ``b``, ``h`` and bounds through its own
+  update API (``setup_time`` = the update) and solves from the previous iterate's answer
+  (``solve_time``), so ``total_time`` = update + solve. A backend without an update API pays
+  its full setup + solve in warm cells too (``warm_support`` of the backend,
+  :func:`c3bench.solvers.timing.warm_support`; ``warm_update`` = 0 in the cell's trace).
+
+Cells of different starts are never ranked against each other (``start`` is a peer column).
 
 Aggregates (per family, variant, settings, precision, start, solver)
 --------------------------------------------------------------------
@@ -74,13 +83,25 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, QP_FAMILIES, Family, Variant
+from c3bench.problems.names import (
+    COMPLEMENTARITY_FAMILIES,
+    QP_FAMILIES,
+    Family,
+    QPVariant,
+    Variant,
+)
 
 TIME_SHIFT = 1e-4
 LOG_FLOOR = 1e-300
 """The only floor of the accuracy means: keeps ``log`` finite on exact zeros."""
 RANKED_TIME_COLUMN = "total_time"
 """The results column every ranking reads (:func:`ranked_time`)."""
+RANKED_TIME_MEANING: dict[str, str] = {
+    "cold": "setup + solve of a fresh solver object",
+    "warm": "update + solve: the solver's update API with the new vectors, then the solve "
+            "from the previous answer (setup + solve where a solver has no update API)",
+}
+"""What :data:`RANKED_TIME_COLUMN` measures in each start mode (module docstring)."""
 DUAL_FAMILIES: tuple[Family, ...] = QP_FAMILIES
 """Families whose solutions carry meaningful duals (convex QPs and the LCP)."""
 NO_DUAL_FAMILIES: tuple[Family, ...] = COMPLEMENTARITY_FAMILIES
@@ -101,15 +122,20 @@ def ranked_time(frame: pd.DataFrame) -> np.ndarray:
     return frame[RANKED_TIME_COLUMN].to_numpy(dtype=float)
 
 
-def ranked_time_label() -> str:
-    """The ranked time's name for labels and captions (``total time``)."""
-    return RANKED_TIME_COLUMN.replace("_", " ")
+def ranked_time_label(start: str | None = None) -> str:
+    """The ranked time's name for labels and captions (``total time``; with a ``start``
+    mode, what it measures there, e.g. ``total time (update + solve: ...)``)."""
+    label = RANKED_TIME_COLUMN.replace("_", " ")
+    if start is None or str(start) not in RANKED_TIME_MEANING:
+        return label
+    return f"{label} ({RANKED_TIME_MEANING[str(start)]})"
 
 
 def instance_variant(instance: str) -> str:
-    """``c3`` / ``c3plus`` when the instance name's second ``-`` field is a variant, else ``""``."""
+    """The instance name's second ``-`` field when it is a variant (``c3`` / ``c3plus`` of a
+    projection, ``bounded`` / ``equality`` of a QP step), else ``""``."""
     parts = str(instance).split("-")
-    return parts[1] if len(parts) > 2 and parts[1] in tuple(Variant) else ""
+    return parts[1] if len(parts) > 2 and parts[1] in (*Variant, *QPVariant) else ""
 
 
 def with_variants(frame: pd.DataFrame) -> pd.DataFrame:

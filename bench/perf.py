@@ -1,47 +1,54 @@
 """``c3bench perf``: the time of one C3+ control step, per backend and number of model samples.
 
 **Control step** (what is timed, wall clock with ``time.perf_counter``; CPU time with
-``time.process_time`` beside it): the LCS build for all ``n`` samples at a state along the
-scripted push (:func:`problems.suites.scripted_push`, states in the contact band, visited in
-order, the controller warm-started from the previous step as in closed loop) plus
-``iterations`` ADMM iterations (default 10, geometric rho schedule, the reference study's rho0),
-horizon ``T`` of the task config (7), planar scene. Samples have cube sides ``l_j ~ U[0.27, 0.33]``
-(seeded; ``n = 1`` uses the reference study's model side 0.29) with uniform weights and shared
-inputs.
+``time.process_time`` beside it), as the closed loop runs it
+(:func:`bench.closed_loop_policy.make_policy`): the LCS build for all ``n`` samples at a
+state along the scripted push (:func:`problems.suites.scripted_push`, states in the contact
+band, visited in order, the controller warm-started from the previous step), for ``n > 1``
+with ``weighting`` on (the default) the LCP-error sample weighting
+(:func:`solvers.c3.lcp_prediction_weights` over the last five transitions of the push before
+that state), then ``iterations`` ADMM iterations (default 10, geometric rho schedule, the
+reference study's rho0), horizon ``T`` of the task config (7), planar scene. Samples have
+cube sides ``l_j ~ U[0.27, 0.33]`` (seeded; ``n = 1`` uses the reference study's model side
+0.29) and shared inputs.
 
-**Backends**
+**Backends**: the table :data:`bench.perf_backends.BACKEND_TABLE`, one factory each:
+``c3plus-riccati`` (:class:`solvers.fast.FastC3Plus`, numpy), ``c3plus-compiled`` (the numba
+kernel :class:`solvers.admm.compiled.CompiledC3PlusKernel`; a skipped row "compiled kernel
+unavailable: ..." when it does not import; its JIT compile seconds are stored in
+``compile_s``, the compilation happens in the warm-up steps), ``c3plus-jax``
+(:class:`solvers.fast_jax.JaxC3Plus`, ``--device cpu`` with XLA pinned to one thread when
+this module sets ``XLA_FLAGS`` before JAX is first imported, or ``gpu``: a row "no GPU
+visible" when JAX sees none; nothing is faked), ``c3-osqp`` and ``c3-clarabel`` (the
+reference controller :class:`solvers.c3.C3Controller`, C3+, with that registry QP backend,
+``step`` at ``n = 1`` and ``step_robust`` at ``n = 16``, other ``n`` skipped; a
+configuration whose first step takes longer than ``reference_budget`` seconds is skipped,
+and the repeats are cut to fit the budget otherwise, noted).
 
-* ``c3plus-riccati``: :class:`solvers.fast.FastC3Plus` (numpy, batched Riccati) with
-  :class:`problems.linearize_batch.BatchLinearizer`;
-* ``c3plus-jax``: :class:`solvers.fast_jax.JaxC3Plus` (one compiled call per step) with the
-  same LCS build; only when JAX imports, on ``--device cpu`` (XLA pinned to one thread when
-  this module sets ``XLA_FLAGS`` before JAX is first imported) or ``gpu`` (a row
-  "no GPU visible" when JAX sees none; nothing is faked);
-* ``c3-osqp``, ``c3-clarabel``: the reference controller :mod:`solvers.c3` (C3+ variant,
-  :class:`solvers.c3.C3Controller`) with that registry QP backend at its default settings and
-  :func:`problems.linearize.linearize` per sample; ``n = 1`` through ``step`` and ``n = 16``
-  through ``step_robust`` (one stacked QP), other ``n`` skipped; a configuration whose first
-  (warm-up) step takes longer than ``reference_budget`` seconds is skipped with a note, and
-  the repeats are cut to fit the budget otherwise (noted).
+**Split** of each step: ``lcs`` (LCS build), ``weighting`` (0 when not weighted), ``admm``
+(the controller's call alone), inside it ``qp`` (factorisations, gradients and linear
+passes; for the reference controller the QP build and the backend's solve) and ``proj``
+(projections with the shared-input mean); ``total`` the whole step, ``total_no_weighting =
+total - weighting``, ``overhead = total - lcs - weighting - qp - proj``. For
+``c3plus-jax`` ``qp`` holds the whole compiled call and ``proj`` is ``nan``.
 
-**Split** of each step: ``lcs`` (LCS build), ``qp`` (QP steps: factorisations, gradients and
-linear passes; for the reference controller the QP build and the backend's solve), ``proj``
-(projections, with the shared-input mean), ``overhead = total - lcs - qp - proj`` (Python,
-dual updates, residual bookkeeping, warm start). For ``c3plus-jax`` the ADMM is one compiled
-call: ``qp`` holds the whole call (projections included) and ``proj`` is ``nan``.
-Warm-up steps (default 2; JAX compiles in them) are excluded; BLAS is pinned to one thread
-(threadpoolctl) during every measurement and the count is recorded; ``--cpu N`` pins the
-whole process to core ``N`` (XLA's CPU runtime may otherwise use a second core even with one
-intra-op thread: its CPU time then exceeds the wall time).
+**Machine rate and flops.** Every run first measures the dense matmul rate in float64 and
+float32 (:func:`bench.perf_flops.machine_rates`, one BLAS thread) and stores it in every
+row; the flop model :func:`bench.perf_flops.admm_flops` gives each Riccati C3+ row's ADMM
+MFLOP, so the summary shows the achieved GFLOP/s and its share of the matmul rate.
+**Ratios** (:mod:`bench.perf_summary`): each configuration's median time over that of
+``c3plus-riccati`` float64 and of ``c3-osqp`` at the same samples in the same run.
+
+Warm-up steps (default 2) are excluded; BLAS is pinned to one thread (threadpoolctl)
+during every measurement and the count is recorded; ``--cpu N`` pins the whole process to
+core ``N``.
 
 **Files** (written atomically under ``<results>/perf/`` by :func:`bench.perf_store.write_perf`;
 every run is kept): ``runs/<run_id>.parquet``, one row per timed control step of that run
 (plus one row per skipped configuration), columns :data:`bench.perf_store.PERF_SCHEMA`;
 ``perf.parquet`` and ``perf.csv``, every run together; and
-``figures/perf_time_vs_samples.png`` (:func:`bench.plots.plot_perf`): median control-step time
-against the number of samples (log-log, p95 as error bars) of the latest run of each machine,
-with the reference study's 60 ms and the 6 ms target. :func:`bench.report.perf_report_section`
-renders the summary of the latest run of each machine for the report.
+``figures/perf_time_vs_samples.png`` (:func:`bench.plots_perf.plot_perf`).
+:func:`bench.report.perf_report_section` renders the latest run of each machine.
 """
 
 from __future__ import annotations
@@ -51,7 +58,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -61,12 +68,35 @@ import pandas as pd
 
 from c3bench.bench import perf_store, store
 from c3bench.bench.machine import affinity, host_label, load_average, utc_stamp
+from c3bench.bench.perf_backends import (
+    BACKEND_TABLE,
+    REFERENCE_SAMPLES,
+    BackendUnavailable,
+    Configuration,
+    PerfContext,
+    PreparedBackend,
+    precisions_of,
+    sample_sides,
+)
+from c3bench.bench.perf_flops import (
+    MATMUL_REPEATS,
+    MATMUL_SIZE,
+    MachineRates,
+    admm_flops,
+    machine_rates,
+)
+from c3bench.bench.perf_summary import format_line, format_ms, format_summary_line, summarize
 from c3bench.problems.errors import InputError
 from c3bench.problems.names import Precision
 
-BACKENDS: tuple[str, ...] = ("c3plus-riccati", "c3plus-jax", "c3-osqp", "c3-clarabel")
-REFERENCE_BACKENDS: dict[str, str] = {"c3-osqp": "osqp", "c3-clarabel": "clarabel"}
-REFERENCE_SAMPLES: tuple[int, ...] = (1, 16)
+__all__ = [
+    "BACKENDS", "DEFAULT_SAMPLES", "DEVICES", "PERF_FIGURE", "REFERENCE_SAMPLES",
+    "REFERENCE_STEP_MS", "TARGET_STEP_MS", "PerfSettings", "format_line", "format_ms",
+    "pin_jax_threads", "run_perf", "sample_sides", "summarize",
+]
+
+BACKENDS: tuple[str, ...] = tuple(BACKEND_TABLE)
+"""Every backend, in run order (all run by default)."""
 REFERENCE_STEP_MS = 60.0
 """The reference study's control step (0.06 s with 16 samples, float32, including the LCS build)."""
 TARGET_STEP_MS = 6.0
@@ -95,6 +125,8 @@ class PerfSettings:
     seed: int = 0
     results_dir: Path = field(default_factory=lambda: Path("results"))
     cpu: int | None = None
+    weighting: bool = True
+    """LCP-error sample weighting in every step with ``n > 1`` samples."""
 
     def __post_init__(self) -> None:
         self.samples = tuple(int(n) for n in self.samples)
@@ -115,14 +147,15 @@ class PerfSettings:
 
 
 @dataclass
-class _Context:
-    """Shared inputs: config, MPC, the states visited, identity of the run."""
+class _Run:
+    """Identity and shared measurements of one run."""
 
-    config: Any
-    mpc: Any
-    states: list[tuple[int, np.ndarray, np.ndarray]]
+    context: PerfContext
     run_id: str
     host: str
+    rates: MachineRates
+    dims: tuple[int, int, int]
+    """``(nx, nlam, nu)`` of the LCS."""
 
 
 def pin_jax_threads() -> bool:
@@ -135,7 +168,8 @@ def pin_jax_threads() -> bool:
     return True
 
 
-def _context(settings: PerfSettings) -> _Context:
+def perf_context(settings: PerfSettings) -> PerfContext:
+    """The shared inputs of a run: config, MPC, the scripted push and its visited states."""
     from c3bench.problems.config import load_config
     from c3bench.problems.scene import build_mpc, build_scene
     from c3bench.problems.suites import sample_states, scripted_push
@@ -145,130 +179,88 @@ def _context(settings: PerfSettings) -> _Context:
     indices = sample_states(record, 24, 0.02)
     states = [(i, record.states[i], record.inputs[max(i - 1, 0)]) for i in indices]
     mpc = build_mpc(build_scene(l=0.29, config=config), config.mpc)
-    return _Context(config=config, mpc=mpc, states=states, run_id=utc_stamp(),
-                    host=host_label())
+    return PerfContext(config=config, mpc=mpc, states=states,
+                       push_states=np.asarray(record.states),
+                       push_inputs=np.asarray(record.inputs), iterations=settings.iterations,
+                       seed=settings.seed, weighting=settings.weighting,
+                       reference_budget=settings.reference_budget, warmup=settings.warmup)
 
 
-def sample_sides(samples: int, seed: int) -> np.ndarray:
-    """Cube sides of the samples: ``[0.29]`` for one, else ``U[0.27, 0.33]`` (seeded)."""
-    if samples == 1:
-        return np.array([0.29])
-    return np.random.default_rng([seed, samples]).uniform(0.27, 0.33, samples)
+def lcs_dimensions(context: PerfContext) -> tuple[int, int, int]:
+    """``(nx, nlam, nu)`` of the LCS at the first visited state."""
+    from c3bench.problems.linearize_batch import BatchLinearizer
+
+    _, x, u_prev = context.states[0]
+    lcs = BatchLinearizer(sample_sides(1, context.seed), context.config).linearize(
+        x, u_prev, context.config.mpc.dt)
+    return int(lcs.nx), int(lcs.nlam), int(lcs.nu)
 
 
-def _row(context: _Context, settings: PerfSettings, backend: str, precision: str,
-         device: str, samples: int, **values: Any) -> dict[str, Any]:
+def _row(run: _Run, config: Configuration, **values: Any) -> dict[str, Any]:
     row: dict[str, Any] = {
-        "schema_version": store.SCHEMA_VERSION, "run_id": context.run_id, "backend": backend,
-        "precision": str(precision), "device": device, "samples": samples, "repeat": -1,
+        "schema_version": store.SCHEMA_VERSION, "run_id": run.run_id,
+        "backend": config.backend, "precision": str(config.precision),
+        "device": config.device, "samples": config.samples, "repeat": -1,
         "state_index": -1, "total_ms": math.nan, "lcs_ms": math.nan, "qp_ms": math.nan,
         "proj_ms": math.nan, "overhead_ms": math.nan, "cpu_ms": math.nan,
-        "iterations": settings.iterations, "horizon": int(context.mpc.horizon), "ok": False,
-        "cache_hits": -1, "cache_misses": -1, "skipped": False, "note": "",
-        "blas_threads": 1, "affinity": affinity(), "load_avg": math.nan,
-        "host": context.host,
+        "iterations": run.context.iterations, "horizon": int(run.context.mpc.horizon),
+        "ok": False, "cache_hits": -1, "cache_misses": -1, "skipped": False, "note": "",
+        "blas_threads": 1, "affinity": affinity(), "load_avg": math.nan, "host": run.host,
+        "perf_schema_version": perf_store.PERF_SCHEMA_VERSION, "weighted": False,
+        "weighting_ms": math.nan, "admm_ms": math.nan, "total_no_weighting_ms": math.nan,
+        "admm_mflop": math.nan, "matmul_gflops_f64": run.rates.float64,
+        "matmul_gflops_f32": run.rates.float32, "compile_s": math.nan,
     }
     row.update(values)
     return row
 
 
-Step = Callable[[int, np.ndarray, np.ndarray], dict[str, Any]]
+def _mflop(run: _Run, config: Configuration, iterations: int) -> float:
+    """The flop model's MFLOP of one step's ADMM (rho changes every iteration)."""
+    nx, nlam, nu = run.dims
+    flops = admm_flops(nx, nlam, nu, int(run.context.mpc.horizon), max(iterations, 1),
+                       config.samples)
+    return flops.total / 1e6
 
 
-def _measure(context: _Context, settings: PerfSettings, backend: str, precision: str,
-             device: str, samples: int, step: Step, repeats: int, note: str = ""
-             ) -> list[dict[str, Any]]:
-    """Warm-up, then ``repeats`` timed steps of ``step(state_index, x, u_prev)``."""
+def _measure(run: _Run, config: Configuration, prepared: PreparedBackend, repeats: int,
+             note: str) -> list[dict[str, Any]]:
+    """Warm-up, then ``repeats`` timed steps of ``prepared.step(state_index, x, u_prev)``."""
     from c3bench.solvers.timing import blas_threads, single_thread_blas
 
+    context = run.context
     rows = []
     load = load_average()
     gc.collect()
     with single_thread_blas():
         threads = blas_threads()
-        for r in range(settings.warmup + repeats):
+        for r in range(context.warmup + repeats):
             index, x, u_prev = context.states[r % len(context.states)]
             wall, cpu = time.perf_counter(), time.process_time()
-            parts = step(index, x, u_prev)
+            parts = prepared.step(index, x, u_prev)
             cpu = time.process_time() - cpu
             wall = time.perf_counter() - wall
-            if r < settings.warmup:
+            if r < context.warmup:
                 continue
             total = 1e3 * wall
-            lcs, qp, proj = (1e3 * parts.get(k, math.nan) for k in ("lcs", "qp", "proj"))
-            known = lcs + qp + (0.0 if math.isnan(proj) else proj)
-            rows.append(_row(context, settings, backend, precision, device, samples,
-                             repeat=r - settings.warmup, state_index=index, total_ms=total,
-                             lcs_ms=lcs, qp_ms=qp, proj_ms=proj,
-                             overhead_ms=max(total - known, 0.0), cpu_ms=1e3 * cpu,
-                             ok=bool(parts.get("ok", False)),
-                             cache_hits=int(parts.get("cache_hits", -1)),
-                             cache_misses=int(parts.get("cache_misses", -1)), note=note,
-                             blas_threads=threads, load_avg=load))
+            lcs, weighting, qp, proj = (1e3 * value for value in (
+                parts.lcs, parts.weighting, parts.qp, parts.proj))
+            known = lcs + weighting + qp + (0.0 if math.isnan(proj) else proj)
+            iterations = parts.iterations if parts.iterations >= 0 else context.iterations
+            rows.append(_row(
+                run, config, repeat=r - context.warmup, state_index=index, total_ms=total,
+                lcs_ms=lcs, qp_ms=qp, proj_ms=proj, overhead_ms=max(total - known, 0.0),
+                cpu_ms=1e3 * cpu, iterations=iterations, ok=parts.ok,
+                cache_hits=parts.cache_hits, cache_misses=parts.cache_misses, note=note,
+                blas_threads=threads, load_avg=load, weighted=parts.weighted,
+                weighting_ms=weighting, admm_ms=1e3 * parts.admm,
+                total_no_weighting_ms=total - weighting,
+                admm_mflop=_mflop(run, config, iterations) if prepared.flop_model
+                else math.nan))
+    compile_seconds = prepared.compile_seconds()
+    for row in rows:
+        row["compile_s"] = compile_seconds
     return rows
-
-
-def _fast_step(context: _Context, settings: PerfSettings, samples: int, precision: str,
-               backend: str, device: str) -> Step:
-    from c3bench.problems.linearize_batch import BatchLinearizer
-    from c3bench.solvers.c3 import C3Options
-    from c3bench.solvers.fast import FastC3Plus, FastC3PlusController, RiccatiOptions
-
-    options = C3Options(keep_iterates=False, admm_iterations=settings.iterations)
-    linearizer = BatchLinearizer(sample_sides(samples, settings.seed), context.config)
-    solver: Any
-    if backend == "c3plus-jax":
-        from c3bench.solvers.fast_jax import JaxC3Plus
-
-        solver = JaxC3Plus(context.mpc, options, precision=precision, device=device)
-    else:
-        solver = FastC3Plus(context.mpc, options, RiccatiOptions(precision=precision))
-    controller = FastC3PlusController(solver)
-    dt = context.config.mpc.dt
-
-    def step(index: int, x: np.ndarray, u_prev: np.ndarray) -> dict[str, Any]:
-        start = time.perf_counter()
-        lcs = linearizer.linearize(x, u_prev, dt)
-        lcs_time = time.perf_counter() - start
-        solution = controller.step(lcs, x)
-        timings = solution.timings
-        parts: dict[str, Any] = {"lcs": lcs_time, "ok": solution.ok}
-        if backend == "c3plus-jax":
-            parts.update(qp=timings.total, proj=math.nan)
-        else:
-            parts.update(qp=timings.qp, proj=timings.projection,
-                         cache_hits=solution.cache_hits, cache_misses=solution.cache_misses)
-        return parts
-
-    return step
-
-
-def _reference_step(context: _Context, settings: PerfSettings, samples: int, backend: str
-                    ) -> Step:
-    from c3bench.problems.linearize import linearize
-    from c3bench.problems.scene import build_scene
-    from c3bench.solvers.c3 import C3Controller, C3Options
-
-    options = C3Options(qp_backend=REFERENCE_BACKENDS[backend], keep_iterates=False,
-                        admm_iterations=settings.iterations)
-    controller = C3Controller(options)
-    scenes = [build_scene(l=float(side), config=context.config)
-              for side in sample_sides(samples, settings.seed)]
-    dt = context.config.mpc.dt
-
-    def step(index: int, x: np.ndarray, u_prev: np.ndarray) -> dict[str, Any]:
-        start = time.perf_counter()
-        systems = [linearize(scene, x, u_prev, dt) for scene in scenes]
-        lcs_time = time.perf_counter() - start
-        if samples == 1:
-            solution = controller.step(systems[0], context.mpc, x)
-        else:
-            solution = controller.step_robust(systems, None, context.mpc, x)
-        trace = solution.trace
-        return {"lcs": lcs_time, "qp": sum(trace.qp_setup_time) + sum(trace.qp_time),
-                "proj": sum(trace.projection_time), "ok": solution.ok}
-
-    return step
 
 
 def run_perf(settings: PerfSettings, echo: Callable[[str], None] | None = print
@@ -287,150 +279,86 @@ def run_perf(settings: PerfSettings, echo: Callable[[str], None] | None = print
         os.sched_setaffinity(0, previous)
 
 
+def _configurations(settings: PerfSettings) -> list[Configuration]:
+    out: list[Configuration] = []
+    for backend in settings.backends:
+        spec = BACKEND_TABLE[backend]
+        device = settings.device if settings.device in spec.devices else "cpu"
+        for precision in precisions_of(spec, settings.precisions):
+            out.extend(Configuration(backend, str(precision), device, samples)
+                       for samples in settings.samples)
+    return out
+
+
 def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.DataFrame:
     say = echo or (lambda _: None)
-    wants_jax = "c3plus-jax" in settings.backends
-    if wants_jax and settings.device == "cpu":
+    if "c3plus-jax" in settings.backends and settings.device == "cpu":
         pin_jax_threads()
-    context = _context(settings)
+    context = perf_context(settings)
     from c3bench.solvers.timing import blas_threads, single_thread_blas
 
     with single_thread_blas():
         threads = blas_threads()
-    say(f"# c3bench perf  {context.run_id}  host {context.host}")
+    run = _Run(context=context, run_id=utc_stamp(), host=host_label(), rates=machine_rates(),
+               dims=lcs_dimensions(context))
+    say(f"# c3bench perf  {run.run_id}  host {run.host}")
     say(f"# T={context.mpc.horizon}  ADMM iterations={settings.iterations}  "
-        f"dt={context.config.mpc.dt}  planar  BLAS threads={threads} (pinned)  cores "
-        f"{affinity()}  load average {load_average():.2f}  warm-up {settings.warmup}  repeats "
-        f"{settings.repeats}")
+        f"dt={context.config.mpc.dt}  planar  (nx, nlam, nu)={run.dims}  BLAS threads="
+        f"{threads} (pinned)  cores {affinity()}  load average {load_average():.2f}  warm-up "
+        f"{settings.warmup}  repeats {settings.repeats}  weighting "
+        f"{'on (n > 1)' if settings.weighting else 'off'}")
+    say(f"# dense matmul rate ({MATMUL_SIZE}x{MATMUL_SIZE}, one thread, best of "
+        f"{MATMUL_REPEATS}): float64 "
+        f"{run.rates.float64:.1f} GFLOP/s, float32 {run.rates.float32:.1f} GFLOP/s")
     rows: list[dict[str, Any]] = []
-    for backend in settings.backends:
-        precisions = (Precision.FLOAT64,) if backend in REFERENCE_BACKENDS \
-            else settings.precisions
-        device = settings.device if backend == "c3plus-jax" else "cpu"
-        for precision in precisions:
-            for samples in settings.samples:
-                new = _run_one(context, settings, backend, precision, device, samples, say)
-                rows.extend(new)
+    for config in _configurations(settings):
+        new = _run_one(run, settings, config, say)
+        rows.extend(new)
+        if not new[0]["skipped"]:  # with the ratios to what this run measured so far
+            say(_config_line(pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS)), config))
     frame = pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
+    say(f"# summary (ratios t / t_ref within this run; load average now "
+        f"{load_average():.2f})")
+    say(format_line(frame))
     perf_store.write_perf(frame, settings.results_dir)
-    from c3bench.bench.plots import plot_perf  # matplotlib only once there is something to draw
+    from c3bench.bench.plots_perf import plot_perf  # matplotlib only once there is a figure
 
     plot_perf(perf_store.read_perf(settings.results_dir),
               store.perf_dir(settings.results_dir) / "figures" / PERF_FIGURE)
     return frame
 
 
-def _run_one(context: _Context, settings: PerfSettings, backend: str, precision: str,
-             device: str, samples: int, say: Callable[[str], None]) -> list[dict[str, Any]]:
-    label = f"{backend:<15} {precision:<8} {device:<4} samples={samples:<5}"
+def _run_one(run: _Run, settings: PerfSettings, config: Configuration,
+             say: Callable[[str], None]) -> list[dict[str, Any]]:
+    label = (f"{config.backend:<15} {config.precision:<8} {config.device:<4} "
+             f"samples={config.samples:<5}")
+    spec = BACKEND_TABLE[config.backend]
 
     def skip(note: str) -> list[dict[str, Any]]:
         say(f"{label} skipped: {note}")
-        return [_row(context, settings, backend, precision, device, samples, skipped=True,
-                     note=note, load_avg=load_average())]
+        return [_row(run, config, skipped=True, note=note, load_avg=load_average())]
 
-    if backend == "c3plus-jax":
-        from c3bench.solvers.fast_jax import JaxUnavailable, gpu_available, jax_available
-
-        if not jax_available():
-            return skip("JAX not installed (pip install 'c3bench[jax]')")
-        if device == "gpu" and not gpu_available():
-            return skip("no GPU visible")
-        try:
-            step = _fast_step(context, settings, samples, precision, backend, device)
-        except JaxUnavailable as error:
-            return skip(str(error))
-        rows = _measure(context, settings, backend, precision, device, samples, step,
-                        settings.repeats)
-    elif backend == "c3plus-riccati":
-        step = _fast_step(context, settings, samples, precision, backend, device)
-        rows = _measure(context, settings, backend, precision, device, samples, step,
-                        settings.repeats)
-    else:
-        if samples not in REFERENCE_SAMPLES:
-            return skip(f"the reference controller is measured at samples "
-                        f"{'/'.join(map(str, REFERENCE_SAMPLES))} only")
-        from c3bench.solvers import registry
-
-        if not registry.get(REFERENCE_BACKENDS[backend]).availability()[0]:
-            return skip(f"{REFERENCE_BACKENDS[backend]} not available")
-        step = _reference_step(context, settings, samples, backend)
-        start = time.perf_counter()
-        from c3bench.solvers.timing import single_thread_blas
-
-        with single_thread_blas():
-            index, x, u_prev = context.states[0]
-            step(index, x, u_prev)
-        first = time.perf_counter() - start
-        if first > settings.reference_budget:
-            return skip(f"one control step took {first:.1f} s > budget "
-                        f"{settings.reference_budget:g} s")
-        affordable = int(settings.reference_budget // max(first, 1e-9))
-        repeats = max(1, min(settings.repeats, affordable - settings.warmup))
-        note = "" if repeats == settings.repeats else \
-            f"repeats cut to {repeats} (budget {settings.reference_budget:g} s)"
-        rows = _measure(context, settings, backend, precision, device, samples, step,
-                        repeats, note)
-    say(format_line(pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))))
+    try:
+        prepared = spec.make(run.context, config)
+    except BackendUnavailable as error:
+        return skip(str(error))
+    repeats, note = settings.repeats, ""
+    if prepared.repeats is not None and prepared.repeats < settings.repeats:
+        repeats, note = prepared.repeats, f"repeats cut to {prepared.repeats} ({prepared.note})"
+    try:
+        rows = _measure(run, config, prepared, repeats, note)
+    except BackendUnavailable as error:
+        return skip(str(error))
+    except Exception as error:  # noqa: BLE001 (a backend that raises is a skipped row)
+        return skip(f"{spec.failure}: {type(error).__name__}: {error}")
     return rows
 
 
-# --- summaries ---------------------------------------------------------------------------------
-def _p95(values: Sequence[float]) -> float:
-    """The 95th percentile (NaN for no values)."""
-    return float(np.percentile(np.asarray(values, dtype=float), 95)) if len(values) else math.nan
-
-
-def summarize(frame: pd.DataFrame) -> pd.DataFrame:
-    """Per (backend, precision, device, samples): repeats, median and p95 of the total,
-    medians of the parts, the overhead fraction and the failed steps."""
-    out = []
-    keys = ["backend", "precision", "device", "samples"]
-    for key, group in frame.groupby(keys, sort=False):
-        timed = group[~group["skipped"].astype(bool)]
-        record = dict(zip(keys, key, strict=True))
-        if timed.empty:
-            record.update(repeats=0, median_ms=math.nan, p95_ms=math.nan, lcs_ms=math.nan,
-                          qp_ms=math.nan, proj_ms=math.nan, overhead_ms=math.nan,
-                          cpu_ms=math.nan, overhead_fraction=math.nan, failed=0,
-                          note="; ".join(sorted(set(group["note"].astype(str)) - {""})))
-        else:
-            median = float(timed["total_ms"].median())
-            overhead = float(timed["overhead_ms"].median())
-            record.update(
-                repeats=len(timed), median_ms=median, p95_ms=_p95(timed["total_ms"].tolist()),
-                lcs_ms=float(timed["lcs_ms"].median()), qp_ms=float(timed["qp_ms"].median()),
-                proj_ms=float(timed["proj_ms"].median()), overhead_ms=overhead,
-                cpu_ms=float(timed["cpu_ms"].median()),
-                overhead_fraction=overhead / median if median > 0 else math.nan,
-                failed=int((~timed["ok"].astype(bool)).sum()),
-                note="; ".join(sorted(set(timed["note"].astype(str)) - {""})))
-        out.append(record)
-    return pd.DataFrame(out)
-
-
-def format_ms(value: float) -> str:
-    """Milliseconds as text: one decimal from 10 ms, two below, ``-`` when not finite."""
-    if not math.isfinite(value):
-        return "-"
-    return f"{value:.1f}" if value >= 10 else f"{value:.2f}"
-
-
-def format_line(rows: pd.DataFrame) -> str:
-    """``backend  samples=n  median .. ms  p95 .. ms  lcs ..  qp ..  proj ..  overhead ..``."""
-    lines = []
-    for _, s in summarize(rows).iterrows():
-        head = f"{s['backend']:<15} {s['precision']:<8} {s['device']:<4} samples={s['samples']:<5}"
-        if s["repeats"] == 0:
-            lines.append(f"{head} skipped: {s['note']}")
-            continue
-        proj = "(compiled)" if s["backend"] == "c3plus-jax" else format_ms(s["proj_ms"])
-        qp_label = "qp+proj" if s["backend"] == "c3plus-jax" else "qp"
-        text = (f"{head} median {format_ms(s['median_ms'])} ms  p95 {format_ms(s['p95_ms'])} ms  "
-                f"lcs {format_ms(s['lcs_ms'])}  {qp_label} {format_ms(s['qp_ms'])}  proj {proj}  "
-                f"overhead {format_ms(s['overhead_ms'])}  cpu {format_ms(s['cpu_ms'])}  "
-                f"(n={s['repeats']}{', failed ' + str(s['failed']) if s['failed'] else ''})")
-        if s["note"]:
-            text += f"  [{s['note']}]"
-        lines.append(text)
-    return "\n".join(lines)
+def _config_line(frame: pd.DataFrame, config: Configuration) -> str:
+    """The printed summary line of ``config`` among every row measured so far."""
+    summary = summarize(frame)
+    mine = summary[(summary["backend"] == config.backend)
+                   & (summary["precision"] == config.precision)
+                   & (summary["device"] == config.device)
+                   & (summary["samples"] == config.samples)]
+    return "\n".join(format_summary_line(s) for _, s in mine.iterrows())

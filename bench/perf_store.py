@@ -4,15 +4,20 @@
 (:data:`PERF_SCHEMA`, one row per timed step; a run never overwrites another),
 ``ROOT/perf/perf.parquet`` and ``perf.csv`` every run together, and
 ``figures/perf_time_vs_samples.png`` the latest run of each machine. Versions, atomic writes and
-Parquet helpers are those of :mod:`bench.store`.
+Parquet helpers are those of :mod:`bench.store`; the perf table's own layout is versioned
+beside them (:data:`PERF_SCHEMA_VERSION`: layout 2 added the weighting, ADMM-alone, flop-model,
+matmul-rate and compile-time columns), and files of layout 1 are still read, their new
+columns NaN (:func:`upgrade_perf_frame`).
 """
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
 import pandas as pd
+import pyarrow as pa
 
 from c3bench.bench.store import (
     PERF_RUNS,
@@ -22,24 +27,35 @@ from c3bench.bench.store import (
     parquet_bytes,
     perf_dir,
     read_parquet,
+    results_folder,
 )
+from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.instance import atomic_write_bytes
 
 # --- perf: control-step times -----------------------------------------------------------------
+PERF_SCHEMA_VERSION = 2
+"""Version of the perf table's own layout (beside :data:`SCHEMA_VERSION`, which every table
+of :mod:`bench.store` carries): 1 without the columns of :data:`PERF_V2_COLUMNS`, 2 with
+them. Stored in the ``perf_schema_version`` column and the Parquet metadata key
+:data:`PERF_METADATA_KEY`; a file of layout 1 (neither) is read with those columns NaN
+(``False`` for ``weighted``)."""
+PERF_METADATA_KEY = b"c3bench_perf_schema"
 PERF_SCHEMA: tuple[Column, ...] = (
     Column("schema_version", "int64", ":data:`SCHEMA_VERSION`."),
     Column("run_id", "str", "UTC time stamp of the run."),
-    Column("backend", "str", "c3plus-riccati, c3plus-jax, c3-osqp or c3-clarabel."),
+    Column("backend", "str", "c3plus-riccati, c3plus-compiled, c3plus-jax, c3-osqp or "
+           "c3-clarabel."),
     Column("precision", "str", "float64 or float32 (the reference controller runs float64)."),
     Column("device", "str", "cpu or gpu."),
     Column("samples", "int64", "Number of model samples n."),
     Column("repeat", "int64", "Index of the timed step (-1 on a skipped row)."),
     Column("state_index", "int64", "Step index of the state along the scripted push."),
-    Column("total_ms", "float64", "Control-step time (wall)."),
+    Column("total_ms", "float64", "Whole control step (wall): LCS build + weighting + ADMM."),
     Column("lcs_ms", "float64", "LCS build."),
     Column("qp_ms", "float64", "QP steps (factorisations, gradients, linear passes)."),
     Column("proj_ms", "float64", "Projections (NaN for c3plus-jax)."),
-    Column("overhead_ms", "float64", "total - lcs - qp - proj (total - lcs - qp for JAX)."),
+    Column("overhead_ms", "float64", "total - lcs - weighting - qp - proj (total - lcs - "
+           "weighting - qp for JAX)."),
     Column("cpu_ms", "float64", "Process CPU time of the step."),
     Column("iterations", "int64", "ADMM iterations."),
     Column("horizon", "int64", "Horizon T."),
@@ -53,13 +69,62 @@ PERF_SCHEMA: tuple[Column, ...] = (
     Column("affinity", "str", "CPU cores the process may run on (--cpu pins it to one)."),
     Column("load_avg", "float64", "1-minute load average when the configuration started."),
     Column("host", "str", "Machine name, processor and cores."),
+    # layout 2
+    Column("perf_schema_version", "int64", ":data:`PERF_SCHEMA_VERSION`."),
+    Column("weighted", "bool", "The step weighted its samples by their LCP prediction error."),
+    Column("weighting_ms", "float64", "LCP-error sample weighting (0 when not weighted)."),
+    Column("admm_ms", "float64", "The controller's ADMM call alone (wall)."),
+    Column("total_no_weighting_ms", "float64", "total - weighting: LCS build + ADMM."),
+    Column("admm_mflop", "float64", "Flops of the step's ADMM by the flop model "
+           "(bench/perf_flops.py), in millions; NaN for the reference controller."),
+    Column("matmul_gflops_f64", "float64", "The run's dense float64 matmul rate, one thread."),
+    Column("matmul_gflops_f32", "float64", "The run's dense float32 matmul rate, one thread."),
+    Column("compile_s", "float64", "JIT compile seconds of the backend (in the warm-up, "
+           "excluded from the step times; NaN when not compiled)."),
 )
 PERF_COLUMNS: tuple[str, ...] = tuple(column.name for column in PERF_SCHEMA)
+PERF_V2_COLUMNS: tuple[str, ...] = PERF_COLUMNS[PERF_COLUMNS.index("perf_schema_version"):]
+"""Columns added by perf layout 2."""
 PERF_READABLE: tuple[int, ...] = (1, SCHEMA_VERSION)
-"""Schema versions whose perf tables this c3bench reads: :data:`PERF_SCHEMA` is unchanged
-since version 1 (version 2 changed the results table only), so stored perf runs are kept."""
+"""Values of :data:`SCHEMA_VERSION` whose perf tables this c3bench reads (the perf table's own
+changes are versioned by :data:`PERF_SCHEMA_VERSION`)."""
 
 
+def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
+    """The rows of a stored perf table in the current layout: a layout-1 table gets the
+    columns of :data:`PERF_V2_COLUMNS` (NaN, ``weighted`` ``False``, version 1); a newer
+    layout than :data:`PERF_SCHEMA_VERSION` raises :class:`SchemaVersionError`."""
+    frame = frame.copy()
+    if "perf_schema_version" not in frame.columns:
+        frame["perf_schema_version"] = 1
+    versions = set(pd.to_numeric(frame["perf_schema_version"]).astype(int).tolist())
+    newer = sorted(v for v in versions if v > PERF_SCHEMA_VERSION or v < 1)
+    if newer:
+        raise SchemaVersionError(
+            f"{source}: perf table layout {newer[0]}, this c3bench reads layouts 1 to "
+            f"{PERF_SCHEMA_VERSION}; delete or move {results_folder(Path(source))}")
+    for name in PERF_V2_COLUMNS:
+        if name not in frame.columns:
+            frame[name] = False if name == "weighted" else math.nan
+    return frame
+
+
+def _perf_parquet_bytes(frame: pd.DataFrame) -> bytes:
+    """:func:`bench.store.parquet_bytes` with :data:`PERF_SCHEMA_VERSION` in the metadata."""
+    table = pa.Table.from_pandas(frame, preserve_index=False)
+    metadata = dict(table.schema.metadata or {})
+    metadata[PERF_METADATA_KEY] = str(PERF_SCHEMA_VERSION).encode()
+    return parquet_bytes(table.replace_schema_metadata(metadata))
+
+
+def _read_perf_parquet(path: Path) -> pd.DataFrame:
+    """A perf Parquet file in the current layout (both versions checked)."""
+    table = read_parquet(path, PERF_READABLE)
+    frame = table.to_pandas()
+    raw = (table.schema.metadata or {}).get(PERF_METADATA_KEY)
+    if raw is not None and "perf_schema_version" not in frame.columns:
+        frame["perf_schema_version"] = int(raw) if raw.decode().isdigit() else -1
+    return upgrade_perf_frame(frame, path)
 
 
 def perf_files(results_dir: str | Path) -> tuple[Path, Path]:
@@ -92,7 +157,7 @@ def write_perf(frame: pd.DataFrame, results_dir: str | Path) -> tuple[Path, Path
             stem = f"{_file_safe(str(run_id))}.{suffix}"
         if suffix > 1:
             rows = rows.assign(run_id=stem)
-        atomic_write_bytes(runs / f"{stem}.parquet", parquet_bytes(rows))
+        atomic_write_bytes(runs / f"{stem}.parquet", _perf_parquet_bytes(rows))
     return consolidate_perf(results_dir)
 
 
@@ -110,33 +175,33 @@ def _adopt_perf_table(results_dir: str | Path) -> None:
     runs = perf_dir(results_dir) / PERF_RUNS
     for run_id, rows in old.groupby("run_id", sort=False):
         atomic_write_bytes(runs / f"{_file_safe(str(run_id))}.parquet",
-                           parquet_bytes(rows.reset_index(drop=True)))
+                           _perf_parquet_bytes(rows.reset_index(drop=True)))
 
 
 def consolidate_perf(results_dir: str | Path) -> tuple[Path, Path]:
     """Rewrite ``perf.parquet`` and ``perf.csv`` with every run file, oldest run first."""
-    frames = [read_parquet(path, PERF_READABLE).to_pandas()
-              for path in perf_run_files(results_dir)]
+    frames = [_read_perf_parquet(path) for path in perf_run_files(results_dir)]
     frame = pd.concat(frames, ignore_index=True) if frames else \
         pd.DataFrame(columns=list(PERF_COLUMNS))
     parquet, csv = perf_files(results_dir)
-    atomic_write_bytes(parquet, parquet_bytes(frame))
+    atomic_write_bytes(parquet, _perf_parquet_bytes(frame))
     atomic_write_bytes(csv, frame.to_csv(index=False).encode())
     return parquet, csv
 
 
 def read_perf(results_dir: str | Path) -> pd.DataFrame:
-    """Read ``<results_dir>/perf/perf.parquet`` (or the CSV), every stored run; reject
-    another schema version.
+    """Read ``<results_dir>/perf/perf.parquet`` (or the CSV), every stored run, in the
+    current layout (:func:`upgrade_perf_frame`); reject another schema version.
 
     Raises ``FileNotFoundError`` when there is no measurement.
     """
     parquet, csv = perf_files(results_dir)
     if parquet.exists():
-        frame = read_parquet(parquet, PERF_READABLE).to_pandas()
+        frame = _read_perf_parquet(parquet)
     elif csv.exists():
         frame = pd.read_csv(csv, keep_default_na=False, na_values=["nan", "NaN", ""])
         check_frame_version(frame, csv, PERF_READABLE)
+        frame = upgrade_perf_frame(frame, csv)
     else:
         raise FileNotFoundError(f"no perf results under {parquet.parent}; run `c3bench perf`")
     return frame

@@ -5,7 +5,11 @@ exists only when the backend accepts the instance (``backend.accepts``) and runs
 precision; ``warm`` cells exist only for instances with a predecessor in their ADMM sequence
 (same family and metadata except ``admm_iteration``/``rho``, the largest earlier iteration
 present in the suite): the warm start is the predecessor's reference solution, as a controller
-reuses its last answer.
+reuses its last answer. A warm cell is timed by the warm contract of
+:mod:`c3bench.solvers.timing`: the solver object is set up on the instance untimed, then its
+own update API (OSQP, ProxQP, Clarabel, PIQP) takes the instance's vectors and it solves from
+that warm start; ``setup_time`` is the update, ``total_time`` update + solve. Backends
+without an update API pay setup + solve (their ``warm_support`` says so).
 """
 
 from __future__ import annotations

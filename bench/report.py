@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from c3bench.bench import perf_store, store
+from c3bench.bench import store
 from c3bench.bench.budgets import budget_seconds
 from c3bench.bench.metrics import (
     DUAL_FAMILIES,
@@ -41,8 +41,9 @@ from c3bench.bench.perf import (
 from c3bench.bench.plots import all_figures, ordered_settings
 from c3bench.bench.reference import AGREE_COST, REFERENCE_PLANS, load_references, summarise
 from c3bench.bench.report_accuracy import budget_section, claimed_wrong_section
+from c3bench.bench.report_why import why_slow_section
 from c3bench.bench.tables import NOT_RUN, fmt, fmt_accuracy, markdown_table
-from c3bench.problems.names import Precision, Start
+from c3bench.problems.names import QP_FAMILIES, Precision, Start
 
 __all__ = ["build_report", "family_table", "fmt", "markdown_table", "perf_report_section",
            "reason_kind", "write_report"]
@@ -127,12 +128,17 @@ def _method() -> str:
         "theirs that passes every residual check without one is counted apart as "
         "*unverified*, never as a success. The solver's own status is never enough.\n\n"
         f"**Ranked time**: every ranking (time columns, performance profiles, Pareto plots, "
-        f"budgets, `compare`) uses the {time} = setup + solve, the same for `cold` and "
-        "`warm` cells: setup (conversion, structure analysis, factorisation, solver object "
-        "construction) and solve are split by one contract for every backend "
-        "(solvers.timing), and inside C3 / C3+ the QP matrices change with rho at every "
-        "ADMM iteration, so a controller pays both. A `warm` cell differs from a `cold` one "
-        "only in its initial guess; no backend reuses a solver object between solves.\n\n"
+        f"budgets, `compare`) uses the {time} = setup + solve, which means what a caller "
+        "pays in the cell's start mode: setup (conversion, structure analysis, "
+        "factorisation, solver object construction) and solve are split by one contract for "
+        "every backend (solvers.timing). `cold`: a fresh solver object, setup + solve (inside "
+        "C3 / C3+ the QP matrices change with rho at every ADMM iteration, so a controller "
+        "pays both). `warm`: what a solver pays when only the vectors change: the solver "
+        "object is set up on the instance's matrices untimed, then the solver's own update "
+        "API takes q, b, h and the bounds (the row's setup time) and it solves from the "
+        "previous ADMM iterate's answer (solve time); a backend without an update API pays "
+        "setup + solve with that guess (warm emulated). Which backend does what:\n\n"
+        f"{_warm_lines()}\n\n"
         f"**Aggregates**: time is the shifted geometric mean exp(mean(log(t + s))) - s of the "
         f"{time} with shift s = {TIME_SHIFT:g} s ({TIME_SHIFT * 1e3:g} ms), failures counted "
         "at the time limit (as qpbenchmark does); *time rel.* divides by the best solver of "
@@ -151,6 +157,21 @@ def _method() -> str:
         "tables and figures split them, and a solver that takes one variant only is "
         f"marked *{NOT_RUN}* on the other instead of failing there.\n"
     )
+
+
+def _warm_lines() -> str:
+    """One bullet per QP backend: what its warm cells measure (``warm_support``)."""
+    from c3bench.solvers import registry
+    from c3bench.solvers.timing import WARM_EMULATED, warm_support
+
+    notes = {name: warm_support(backend) for name, backend in registry.backends().items()
+             if set(backend.families) & set(QP_FAMILIES)}
+    native = [f"- `{name}`: {note}" for name, note in sorted(notes.items())
+              if note != WARM_EMULATED]
+    emulated = sorted(name for name, note in notes.items() if note == WARM_EMULATED)
+    if emulated:
+        native.append(f"- warm emulated (no update API): {', '.join(emulated)}")
+    return "\n".join(native)
 
 
 def _solver_table(info: dict[str, Any], frame: pd.DataFrame) -> str:
@@ -312,7 +333,8 @@ def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
     if summary.empty:
         out.append("No results.\n")
     out += _family_tables(frame, summary)
-    out += ["## Claimed success but wrong\n", claimed_wrong_section(frame),
+    out += ["## Why slow\n", why_slow_section(frame),
+            "## Claimed success but wrong\n", claimed_wrong_section(frame),
             "## Control budget\n", budget_section(frame, budget_seconds(budget_ms),
                                                   explicit=budget_ms is not None),
             "## Failures\n", _failures(frame)]
@@ -453,29 +475,14 @@ def _perf_run_lines(frame: pd.DataFrame) -> list[str]:
 
 def perf_report_section(results_dir: str | Path, figure_link: str | None = None) -> str:
     """A Markdown section on the control-step time (reads ``<results_dir>/perf/``): the
-    latest run of each machine, one table per machine.
+    latest run of each machine, one table per machine, with the ratios to
+    ``c3plus-riccati`` and ``c3-osqp`` of the same run, the achieved GFLOP/s, the run's matmul
+    rate and the load average (:func:`bench.perf_report.perf_section`).
 
     ``figure_link`` is the figure's path as the report should link it (default
     ``perf/figures/perf_time_vs_samples.png``, right for a report in ``results_dir``; a
     report in ``results/<suite>/`` passes ``../perf/figures/perf_time_vs_samples.png``).
     """
-    try:
-        stored = perf_store.read_perf(results_dir)
-    except FileNotFoundError as error:
-        return f"## Control-step time\n\n_No measurement: {error}._\n"
-    frame = perf_store.latest_perf_runs(stored)
-    lines = ["## Control-step time", ""]
-    earlier = stored["run_id"].nunique() - frame["run_id"].nunique()
-    if earlier:
-        lines += [f"The latest run of each machine; {earlier} earlier run(s) are kept in "
-                  f"`{store.PERF_DIR}/{store.PERF_RUNS}/` and `{store.PERF_DIR}/perf.csv`.",
-                  ""]
-    hosts = list(dict.fromkeys(frame["host"].astype(str)))
-    for host in hosts:
-        if len(hosts) > 1:
-            lines += [f"### {host}", ""]
-        lines += _perf_run_lines(frame[frame["host"].astype(str) == host])
-    link = figure_link or f"{store.PERF_DIR}/figures/{PERF_FIGURE}"
-    lines.append(f"![control-step time vs samples]({link})")
-    lines.append("")
-    return "\n".join(lines)
+    from c3bench.bench.perf_report import perf_section
+
+    return perf_section(results_dir, figure_link)

@@ -8,7 +8,9 @@ together.
 
 Each finished cell is written at once (``store.write_cell``: temporary file + rename), so an
 interrupt or crash loses nothing finished; a rerun skips finished cells unless ``rerun=True``
-and reruns the cells of instances whose content changed (their stale cells are deleted and
+and reruns the cells of instances whose content changed (their identity,
+:mod:`c3bench.problems.identity`: provenance and arrays to ~1e-9, so a suite regenerated on
+another machine is not "changed"; their stale cells are deleted and
 ``results.parquet``/``.csv`` rewritten before any work). The tables are consolidated again at
 the end, also after Ctrl-C or SIGTERM.
 
@@ -20,6 +22,7 @@ solve is not stored: the executor retries it once, and if it still fails it is c
 
 from __future__ import annotations
 
+import json
 import os
 import secrets
 import shutil
@@ -45,7 +48,6 @@ from c3bench.bench.planning import (
 )
 from c3bench.bench.reference import (
     Reference,
-    instance_hash,
     load_references,
     plan_for,
     reusable,
@@ -54,6 +56,12 @@ from c3bench.bench.reference import (
 from c3bench.bench.rows import CellOutcome, reference_task, run_cell
 from c3bench.problems.capture import SUITES
 from c3bench.problems.errors import InputError
+from c3bench.problems.identity import (
+    InstanceIdentity,
+    identify,
+    load_identities,
+    save_identities,
+)
 from c3bench.problems.importers import write_manifest
 from c3bench.problems.instance import MANIFEST, InstanceSet, Problem, read_instances
 from c3bench.problems.names import Start
@@ -223,17 +231,36 @@ def _references(pool: Executor, paths: store.SuitePaths, names: set[str],
 def _load(suite: Any, paths: store.SuitePaths, families: Sequence[str] | None, capture: Any,
           progress: bool, skip_bad: bool = False, source: str | Path | None = None
           ) -> tuple[dict[str, Problem], dict[str, str]]:
-    """The suite's problems of ``families`` by name, and every instance's content hash
-    (the instances copied from ``source`` first when given: :func:`adopt_instances`)."""
+    """The suite's problems of ``families`` by name, and every instance's identity id
+    (:func:`identify_instances`; the instances copied from ``source`` first when given:
+    :func:`adopt_instances`)."""
     problems: dict[str, Problem] = {}
-    hashes: dict[str, str] = {}
     instances = (adopt_instances(source, paths, skip_bad) if source is not None
                  else ensure_instances(suite, paths, capture, progress, skip_bad))
-    for problem, path in zip(instances.problems, instances.paths, strict=True):
-        hashes[problem.name] = instance_hash(path)
+    for problem in instances.problems:
         if families is None or problem.family in families:
             problems[problem.name] = problem
-    return problems, hashes
+    return problems, identify_instances(paths, instances)
+
+
+def identify_instances(paths: store.SuitePaths, instances: InstanceSet) -> dict[str, str]:
+    """``instance -> identity id`` (what rows store as ``instance_hash``): the recorded
+    identity of each instance where it still holds (same provenance, arrays equal to the
+    rounding of :mod:`c3bench.problems.identity`, so a suite regenerated on another machine
+    keeps its cells), else a new one; the records are saved beside the cells."""
+    known = load_identities(paths.identities)
+    manifest: dict[str, Any] | None = None
+    try:
+        manifest = json.loads((paths.instances / MANIFEST).read_text())
+    except (OSError, ValueError):
+        manifest = None
+    current: dict[str, InstanceIdentity] = {}
+    for problem, path in zip(instances.problems, instances.paths, strict=True):
+        current[problem.name] = identify(path, known.get(problem.name), manifest)
+    if current != {name: known.get(name) for name in current}:
+        paths.root.mkdir(parents=True, exist_ok=True)
+        save_identities(paths.identities, {**known, **current})
+    return {name: identity.id for name, identity in current.items()}
 
 
 def _sweep_stored(paths: store.SuitePaths, hashes: dict[str, str],

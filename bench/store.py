@@ -74,8 +74,10 @@ SCHEMA: tuple[Column, ...] = (
            "--start."),
     Column("suite", "str", "Suite name (quick, default, full or a custom spec)."),
     Column("instance", "str", "Instance name (unique within the suite)."),
-    Column("instance_hash", "str", "SHA-256 prefix of the instance files; a cell of a "
-           "regenerated (changed) instance is stale and rerun."),
+    Column("instance_hash", "str", "Identity of the instance (problems.identity: its "
+           "provenance and its arrays rounded to ~1e-9 of each array's largest entry); a "
+           "cell of a changed instance is stale and rerun, one regenerated elsewhere with "
+           "last-bit noise is not."),
     Column("family", "str", "Subproblem family: c3plus_qp, c3_qp, projection, mpcc, lcp."),
     Column("solver", "str", "Registry name of the backend."),
     Column("solver_version", "str", "Version of the backend's package ('-' for our own code)."),
@@ -87,8 +89,9 @@ SCHEMA: tuple[Column, ...] = (
            "time aggregates."),
     Column("precision", "str", "Floating-point precision the backend ran in: float64 or "
            "float32."),
-    Column("start", "str", "cold, or warm (from the reference solution of the previous ADMM "
-           "iterate)."),
+    Column("start", "str", "cold (fresh solver object), or warm (solver object kept: update "
+           "API with the new vectors, started from the reference solution of the previous "
+           "ADMM iterate; solvers.timing)."),
     Column("repeats", "int64", "Timed repeats after one untimed warm-up; times are medians."),
     Column("state_index", "Int64", "Step of the scripted push the instance was linearised at."),
     Column("admm_iteration", "Int64", "ADMM iteration the instance was captured at (empty for "
@@ -112,7 +115,8 @@ SCHEMA: tuple[Column, ...] = (
            "without one are never a success."),
     Column("iterations", "Int64", "Solver iterations (empty when not reported)."),
     Column("setup_time", "float64", "Median seconds of setup: conversion, structure analysis, "
-           "factorisation, solver object construction (solvers.timing)."),
+           "factorisation, solver object construction (solvers.timing); in a warm cell the "
+           "update call where the solver has an update API."),
     Column("solve_time", "float64", "Median seconds of the solve proper (iterations, back "
            "substitution, reading the solution out)."),
     Column("total_time", "float64", "setup_time + solve_time: what a caller pays per solve; "
@@ -217,6 +221,12 @@ class SuitePaths:
     @property
     def run_info(self) -> Path:
         return self.root / "run_info.json"
+
+    @property
+    def identities(self) -> Path:
+        """The identities of the instances the stored cells were run on
+        (:mod:`c3bench.problems.identity`; beside the cells, so it travels with them)."""
+        return self.root / "instance_identity.json"
 
     @property
     def report(self) -> Path:

@@ -35,14 +35,16 @@ from c3bench.bench.rows import CellOutcome, run_cell
 from c3bench.problems.capture import SuiteSpec
 from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.instance import Problem
+from c3bench.problems.names import QPVariant
 from c3bench.problems.suites import generate_suite
 from c3bench.solvers import registry
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.timing import Stopwatch
 
 QP = ("c3plus_qp", "c3_qp")
+# one state, the equality variant (the fake KKT backends take equality constraints only)
 TINY = SuiteSpec("tiny", n_states=1, admm_iterations=(0, 1, 2), projection_iterations=(0,),
-                 projection_steps=(0,))
+                 projection_steps=(0,), qp_variants=(QPVariant.EQUALITY,))
 
 
 # --- fake backends ------------------------------------------------------------------------------
@@ -507,7 +509,7 @@ def test_report_tables_equal_metrics_recomputed_from_rows(resumed: dict[str, Any
     path = write_report("tiny", results)
     text = path.read_text()
     frame = store.read_results(paths.root)
-    table = _table(text, "### c3_qp / default / float64 / cold")
+    table = _table(text, "### c3_qp (equality variant) / default / float64 / cold")
     assert set(table) == {"fake_kkt", "fake_wrong"}
     for solver, shown in table.items():
         rows = frame[(frame["family"] == "c3_qp") & (frame["settings"] == "default")
@@ -550,8 +552,8 @@ def test_compare_names_the_winners(resumed: dict[str, Any]) -> None:
         assert r.time_winner == "fake_kkt"  # nothing solved by both: failures charged
         assert r.time_ratio < 1 and math.isnan(r.time_ratio_solved)
     text = compare("tiny", "fake_kkt", "fake_wrong", resumed["results"])
-    assert ("| c3_qp | default | float64 | cold | 3 | 100.0% | 0.0% | 0 / 0 | fake_kkt |"
-            in text)  # unverified counts of A / B (none: c3_qp has a certificate)
+    assert ("| c3_qp (equality variant) | default | float64 | cold | 3 | 100.0% | 0.0% | 0 / 0 "
+            "| fake_kkt |" in text)  # unverified counts of A / B (none: c3_qp has a certificate)
     with pytest.raises(ValueError, match="no results"):
         compare_frame(frame, "fake_kkt", "nobody")
 

@@ -28,6 +28,7 @@ from c3bench.bench.reference import (
     Reference,
     ReferencePlan,
     compute_reference,
+    optimality_certificate,
     save_references,
 )
 from c3bench.bench.report import write_report
@@ -156,3 +157,32 @@ def test_an_mpcc_row_without_a_verified_reference_is_not_a_success(tmp_path: Pat
 def test_a_convex_row_without_a_reference_is_judged_on_its_certificate() -> None:
     row = synthetic_row(family="c3_qp")  # residuals, duals and gap at 1e-12, no reference
     assert row["success"] and row["verdict"] == ""
+
+
+def test_optimality_certificate_needs_optimal_exact_model_and_closed_gap() -> None:
+    def result(status: str, gap: float, big_m: float) -> Result:
+        return Result("scip", "p", True, status,
+                      diagnostics={"mip_gap": gap, "big_m": big_m, "dual_bound": 1.0})
+
+    assert "optimal, gap" in optimality_certificate(result("optimal", 0.0, 0.0))
+    assert optimality_certificate(result("gaplimit", 1e-8, 0.0))
+    assert not optimality_certificate(result("optimal", 1e-3, 0.0))  # gap not closed
+    assert not optimality_certificate(result("optimal", 0.0, 1e4))  # big-M: M may cut f*
+    assert not optimality_certificate(result("timelimit", 0.0, 0.0))
+    assert not optimality_certificate(Result("clarabel", "p", True, "solved"))
+
+
+def test_a_certified_global_solve_is_a_verified_mpcc_reference(
+        small_mpccs: dict[str, Problem]) -> None:
+    """SCIP's proof (SOS1 model, gap closed) verifies f* without Bonmin, and f* is the optimum
+    found by enumerating every contact mode."""
+    miqp = pytest.importorskip("c3bench.solvers.modes")
+    ok, why = registry.get("scip").availability()
+    if not ok:
+        pytest.skip(why)
+    problem = small_mpccs["h2-0"]
+    ref = compute_reference(problem, "digest", reference_module.plan_for(problem.family))
+    assert ref.available and ref.solver == "scip" and ref.reason == ""
+    assert ref.check_status.startswith("certificate: scip optimal")
+    _, optimum = miqp.enumerate_modes(problem)
+    assert ref.objective == pytest.approx(optimum, rel=1e-6)

@@ -1,0 +1,196 @@
+"""The report's section on ``c3bench perf``: the latest run of each machine, with the ratios
+to ``c3plus-riccati`` and ``c3-osqp`` of the same run, the achieved GFLOP/s, the run's
+matmul rate and the load average (:func:`perf_section`, which
+:func:`bench.report.perf_report_section` returns)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from c3bench.bench import perf_store, store
+from c3bench.bench.perf import PERF_FIGURE, REFERENCE_STEP_MS, TARGET_STEP_MS
+from c3bench.bench.perf_summary import format_ms, format_ratio, summarize
+
+FAST_BACKENDS: tuple[str, ...] = ("c3plus-riccati", "c3plus-compiled", "c3plus-jax")
+TABLE_HEADER: tuple[str, ...] = (
+    "backend", "precision", "device", "samples", "n", "step ms", "p95 ms", "w/o weighting",
+    "lcs", "weighting", "admm", "qp", "proj", "overhead", "GFLOP/s", "% matmul",
+    "t / riccati (step, admm)", "t / osqp (step, admm)", "load", "note")
+
+
+def _at(summary: pd.DataFrame, backend: str, samples: int, column: str,
+        precision: str = "float64") -> float:
+    rows = summary[(summary["backend"] == backend) & (summary["samples"] == samples)
+                   & (summary["precision"] == precision) & (summary["repeats"] > 0)]
+    return float(rows[column].iloc[0]) if len(rows) else math.nan
+
+
+def _verdict(ok: bool) -> str:
+    return "met" if ok else "not met"
+
+
+def target_lines(summary: pd.DataFrame) -> list[str]:
+    """The issue's targets (ratios within the run) for each fast backend measured at 16."""
+    lines = []
+    for backend in FAST_BACKENDS:
+        step16 = _at(summary, backend, 16, "median_ms")
+        if not math.isfinite(step16):
+            continue
+        parts = [f"16 samples: step {format_ms(step16)} ms (<= {TARGET_STEP_MS:g} ms: "
+                 f"{_verdict(step16 <= TARGET_STEP_MS)})"]
+        if backend != "c3plus-riccati":
+            for samples, column, factor in ((16, "admm_ratio_riccati", 6),
+                                            (16, "ratio_riccati", 4),
+                                            (1, "admm_ratio_riccati", 10)):
+                ratio = _at(summary, backend, samples, column)
+                if math.isfinite(ratio):
+                    what = "ADMM" if column.startswith("admm") else "whole step"
+                    parts.append(f"{what} at {samples}: {1 / ratio:.3g}x riccati (>= "
+                                 f"{factor}x: {_verdict(1 / ratio >= factor)})")
+        osqp = _at(summary, backend, 16, "ratio_osqp")
+        if math.isfinite(osqp):
+            parts.append(f"{1 / osqp:.3g}x faster than c3-osqp (>= 1000x: "
+                         f"{_verdict(1 / osqp >= 1000)})")
+        with_w = _at(summary, backend, 16, "median_ms")
+        without = _at(summary, backend, 16, "total_no_weighting_ms")
+        if bool(_at(summary, backend, 16, "weighted") == 1) and without > 0:
+            parts.append(f"weighting costs {with_w / without:.2f}x the step without it "
+                         f"(<= 1.5x: {_verdict(with_w / without <= 1.5)})")
+        step256 = _at(summary, backend, 256, "median_ms")
+        if math.isfinite(step256):
+            parts.append(f"256 samples cost {step256 / step16:.1f}x 16 samples (< 8x: "
+                         f"{_verdict(step256 / step16 < 8)})")
+        share = _at(summary, backend, 16, "rate_share")
+        if math.isfinite(share):
+            parts.append(f"ADMM at {100 * share:.1f} % of the matmul rate"
+                         + (f" (>= 25 %: {_verdict(share >= 0.25)})"
+                            if backend == "c3plus-compiled" else ""))
+        lines.append(f"- {backend}: " + "; ".join(parts) + ".")
+    return lines
+
+
+def _table_row(s: pd.Series) -> str:
+    jax = s["backend"] == "c3plus-jax"
+    share = 100 * s["rate_share"]
+    cells = [
+        str(s["backend"]), str(s["precision"]), str(s["device"]), str(s["samples"]),
+        str(s["repeats"]), format_ms(s["median_ms"]), format_ms(s["p95_ms"]),
+        format_ms(s["total_no_weighting_ms"]), format_ms(s["lcs_ms"]),
+        format_ms(s["weighting_ms"]) if s["weighted"] else "-", format_ms(s["admm_ms"]),
+        format_ms(s["qp_ms"]), "compiled" if jax else format_ms(s["proj_ms"]),
+        format_ms(s["overhead_ms"]),
+        f"{s['gflops']:.3g}" if math.isfinite(s["gflops"]) else "-",
+        f"{share:.1f}" if math.isfinite(share) else "-",
+        f"{format_ratio(s['ratio_riccati'])}, {format_ratio(s['admm_ratio_riccati'])}",
+        f"{format_ratio(s['ratio_osqp'])}, {format_ratio(s['admm_ratio_osqp'])}",
+        f"{s['load_avg']:.2f}" if math.isfinite(s["load_avg"]) else "-",
+        "; ".join(filter(None, [
+            str(s["note"] or ""), f"{s['failed']} failed" if s["failed"] else "",
+            f"JIT {s['compile_s']:.2f} s, not timed" if math.isfinite(s["compile_s"]) else ""])),
+    ]
+    return "| " + " | ".join(cells) + " |"
+
+
+def run_lines(frame: pd.DataFrame) -> list[str]:
+    """The description, table, skipped configurations and targets of one run."""
+    summary = summarize(frame)
+    lines: list[str] = []
+    if len(frame):
+        first = frame.iloc[0]
+        loads = frame["load_avg"].astype(float)
+        rates = [f"{name} {_first(frame, column):.1f}" for name, column in (
+            ("float64", "matmul_gflops_f64"), ("float32", "matmul_gflops_f32"))]
+        lines += [
+            f"One C3+ control step as the closed loop runs it: LCS build for all samples, "
+            f"for n > 1 the LCP-error sample weighting over the last 5 observed transitions "
+            f"(when weighted), then {int(first['iterations'])} ADMM iterations (T = "
+            f"{int(first['horizon'])}, planar, geometric rho); wall clock, warm-up excluded, "
+            f"BLAS threads {int(frame['blas_threads'].max())}, cores {first['affinity']}, "
+            f"host {first['host']}, run {first['run_id']}, 1-minute load average "
+            f"{np.nanmin(loads):.2f}-{np.nanmax(loads):.2f}. Dense matmul rate of this run "
+            f"(256 x 256, one thread): {', '.join(rates)} GFLOP/s. `step` = LCS build + "
+            "weighting + ADMM; `admm` = the controller's call alone (`qp` + `proj` + its "
+            "overhead); GFLOP/s = the flop model's ADMM flops (bench/perf_flops.py) / `admm`; "
+            "`t / riccati`, `t / osqp` = median time over that of c3plus-riccati float64 and "
+            "c3-osqp at the same samples in this run (below 1 is faster). The reference "
+            f"study's step: {REFERENCE_STEP_MS:g} ms (16 samples).", ""]
+    lines.append("| " + " | ".join(TABLE_HEADER) + " |")
+    lines.append("|" + "|".join("---" for _ in TABLE_HEADER) + "|")
+    lines += [_table_row(s) for _, s in summary[summary["repeats"] > 0].iterrows()]
+    skipped = summary[summary["repeats"] == 0]
+    if len(skipped):
+        notes: dict[str, list[str]] = {}
+        for _, s in skipped.iterrows():
+            label = f"{s['backend']} ({s['precision']}, {s['device']})"
+            notes.setdefault(f"{label}: {s['note']}", []).append(str(s["samples"]))
+        lines += ["", "Not measured: " + "; ".join(
+            f"{text} (samples {', '.join(counts)})" for text, counts in notes.items()) + "."]
+    lines.append("")
+    checks = target_lines(summary)
+    if checks:
+        lines.extend(["Targets (ratios within this run):", "", *checks, ""])
+    return lines
+
+
+def _first(frame: pd.DataFrame, column: str) -> float:
+    values = pd.to_numeric(frame[column], errors="coerce").dropna()
+    return float(values.iloc[0]) if len(values) else math.nan
+
+
+def perf_section(results_dir: str | Path, figure_link: str | None = None) -> str:
+    """A Markdown section on the control-step time (reads ``<results_dir>/perf/``): the
+    latest run of each machine, one table per machine (module docstring)."""
+    try:
+        stored = perf_store.read_perf(results_dir)
+    except FileNotFoundError as error:
+        return f"## Control-step time\n\n_No measurement: {error}._\n"
+    frame = perf_store.latest_perf_runs(stored)
+    lines = ["## Control-step time", ""]
+    earlier = stored["run_id"].nunique() - frame["run_id"].nunique()
+    if earlier:
+        lines += [f"The latest run of each machine; {earlier} earlier run(s) are kept in "
+                  f"`{store.PERF_DIR}/{store.PERF_RUNS}/` and `{store.PERF_DIR}/perf.csv`.",
+                  ""]
+    hosts = list(dict.fromkeys(frame["host"].astype(str)))
+    for host in hosts:
+        if len(hosts) > 1:
+            lines += [f"### {host}", ""]
+        lines += run_lines(frame[frame["host"].astype(str) == host])
+    link = figure_link or f"{store.PERF_DIR}/figures/{PERF_FIGURE}"
+    lines += [f"![control-step time vs samples]({link})", ""]
+    lines += gpu_lines(Path(results_dir) / store.PERF_DIR / "gpu")
+    return "\n".join(lines)
+
+
+def gpu_lines(directory: Path) -> list[str]:
+    """The GPU runs of ``python -m c3bench.bench.gpu_perf`` stored under ``directory``
+    (``*.jsonl``): ADMM time per backend, device and samples, with each row's ratio to the
+    compiled CPU kernel of the same run, precision and samples."""
+    runs = sorted(directory.glob("*.jsonl")) if directory.is_dir() else []
+    if not runs:
+        return []
+    lines = ["### GPU", "",
+             "ADMM of one control step (10 iterations, warm-started, LCS batches exported from "
+             "this machine), measured on a lent GPU machine by `python -m c3bench.bench."
+             "gpu_perf`; the CPU rows are that machine's cores (JAX multi-threaded, the compiled "
+             "kernel on one thread), so compare within a run.", ""]
+    for path in runs:
+        rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        compiled = {(r["precision"], r["samples"]): r["admm_ms_median"] for r in rows
+                    if r["backend"] == "c3plus-compiled"}
+        lines += [f"`{path.name}`", "",
+                  "| backend | device | kind | precision | samples | ADMM ms (median) | p95 | "
+                  "t / compiled CPU | load |", "|---|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            base = compiled.get((r["precision"], r["samples"]), math.nan)
+            lines.append(f"| {r['backend']} | {r['device']} | {r['device_kind']} | "
+                         f"{r['precision']} | {r['samples']} | {r['admm_ms_median']:.3g} | "
+                         f"{r['admm_ms_p95']:.3g} | {r['admm_ms_median'] / base:.3g} | "
+                         f"{r['load_avg']:.2f} |")
+        lines.append("")
+    return lines

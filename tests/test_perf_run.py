@@ -1,0 +1,67 @@
+"""A short ``c3bench perf`` run: rows, phases, flops, ratios, files and report (no timing is
+checked)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from c3bench.bench.perf import PerfSettings, lcs_dimensions, perf_context, run_perf
+from c3bench.bench.perf_backends import BackendUnavailable, Configuration, make_compiled
+from c3bench.bench.perf_flops import admm_flops
+from c3bench.bench.perf_store import PERF_COLUMNS, read_perf
+from c3bench.bench.report import perf_report_section
+
+
+def test_short_run_records_every_phase_and_ratio(tmp_path: Path) -> None:
+    settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3-clarabel"),
+                            repeats=2, warmup=1, iterations=2, results_dir=tmp_path)
+    lines: list[str] = []
+    frame = run_perf(settings, echo=lines.append)
+    assert list(frame.columns) == list(PERF_COLUMNS)
+    timed = frame[~frame["skipped"].astype(bool)]
+    assert len(timed) == 2 * 2 + 2 and timed["ok"].all()
+    # phases: the whole step is LCS build + weighting + QP + projection + overhead
+    parts = timed["lcs_ms"] + timed["weighting_ms"] + timed["qp_ms"] + timed["proj_ms"] \
+        + timed["overhead_ms"]
+    np.testing.assert_allclose(parts, timed["total_ms"], rtol=1e-9)
+    np.testing.assert_allclose(timed["total_no_weighting_ms"],
+                               timed["total_ms"] - timed["weighting_ms"], rtol=1e-12)
+    assert (timed["admm_ms"] <= timed["total_ms"]).all()
+    weighted = timed[timed["samples"] == 2]
+    assert weighted["weighted"].all() and (weighted["weighting_ms"] > 0).all()
+    assert not timed[timed["samples"] == 1]["weighted"].any()
+    # the flop model of the measured dimensions; none for the reference controller
+    riccati = timed[(timed["backend"] == "c3plus-riccati") & (timed["samples"] == 2)]
+    nx, nlam, nu = lcs_dimensions(perf_context(settings))
+    assert (riccati["admm_mflop"] == admm_flops(nx, nlam, nu, 7, 2, 2).total / 1e6).all()
+    assert timed[timed["backend"] == "c3-clarabel"]["admm_mflop"].isna().all()
+    # one matmul rate per run, in every row
+    assert timed["matmul_gflops_f64"].nunique() == 1 and timed["matmul_gflops_f64"].gt(0).all()
+    assert any(line.startswith("# dense matmul rate") for line in lines)
+    summary_lines = lines[lines.index(next(x for x in lines if x.startswith("# summary"))):]
+    assert any("c3-clarabel" in x and "t/riccati" in x and "load" in x for x in summary_lines)
+    skipped = frame[frame["skipped"].astype(bool)]
+    assert len(skipped) == 1 and "samples" in skipped["note"].iloc[0]
+    assert len(read_perf(tmp_path)) == len(frame)
+    assert (tmp_path / "perf" / "figures" / "perf_time_vs_samples.png").stat().st_size > 0
+    section = perf_report_section(tmp_path)
+    assert "| c3plus-riccati |" in section and "GFLOP/s" in section
+    assert "Dense matmul rate of this run" in section
+
+
+def test_no_weighting_keeps_weighting_at_zero(tmp_path: Path) -> None:
+    settings = PerfSettings(samples=(2,), backends=("c3plus-riccati",), repeats=1, warmup=0,
+                            iterations=1, results_dir=tmp_path, weighting=False)
+    frame = run_perf(settings, echo=None)
+    assert not frame["weighted"].any() and (frame["weighting_ms"] == 0).all()
+
+
+def test_compiled_backend_reports_why_it_cannot_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "c3bench.solvers.admm.compiled", None)
+    monkeypatch.setitem(sys.modules, "c3bench.solvers.admm.compiled_solver", None)
+    with pytest.raises(BackendUnavailable, match=r"^compiled kernel unavailable: "):
+        make_compiled(None, Configuration("c3plus-compiled", "float64", "cpu", 1))  # type: ignore[arg-type]

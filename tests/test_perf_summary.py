@@ -1,0 +1,126 @@
+"""Summaries, ratios and the stored layout of ``c3bench perf`` (no timing is checked)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from c3bench.bench import perf_store, store
+from c3bench.bench.perf_summary import add_ratios, format_line, summarize
+from c3bench.problems.errors import SchemaVersionError
+
+
+def _rows(run: str, backend: str, samples: int, totals: list[float], admm: list[float],
+          precision: str = "float64", mflop: float = math.nan) -> list[dict[str, object]]:
+    rows = []
+    for repeat, (total, step_admm) in enumerate(zip(totals, admm, strict=True)):
+        row: dict[str, object] = {name: math.nan for name in perf_store.PERF_COLUMNS}
+        row.update(schema_version=store.SCHEMA_VERSION, run_id=run, host="h", backend=backend,
+                   precision=precision, device="cpu", samples=samples, repeat=repeat,
+                   state_index=repeat, total_ms=total, admm_ms=step_admm, ok=True,
+                   skipped=False, note="", weighted=samples > 1, weighting_ms=1.0,
+                   total_no_weighting_ms=total - 1.0, admm_mflop=mflop,
+                   matmul_gflops_f64=10.0, matmul_gflops_f32=20.0, load_avg=0.5,
+                   iterations=10, horizon=7, cache_hits=-1, cache_misses=-1,
+                   blas_threads=1, affinity="0", perf_schema_version=2)
+        rows.append(row)
+    return rows
+
+
+def _frame() -> pd.DataFrame:
+    rows = (_rows("r1", "c3plus-riccati", 16, [10.0, 12.0, 14.0], [4.0, 5.0, 6.0], mflop=20.0)
+            + _rows("r1", "c3plus-riccati", 1, [2.0, 2.0, 2.0], [1.0, 1.0, 1.0], mflop=1.0)
+            + _rows("r1", "c3-osqp", 16, [1000.0, 1200.0], [900.0, 1000.0])
+            + _rows("r1", "c3plus-riccati", 16, [6.0, 6.0, 6.0], [2.0, 2.0, 2.0],
+                    precision="float32", mflop=20.0)
+            # another run: its riccati time must not be the denominator of run r1's rows
+            + _rows("r2", "c3plus-riccati", 16, [100.0], [100.0], mflop=20.0))
+    return pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
+
+
+def test_ratios_are_within_one_run_and_the_same_samples() -> None:
+    summary = summarize(_frame()).set_index(["run_id", "backend", "precision", "samples"])
+    riccati = summary.loc[("r1", "c3plus-riccati", "float64", 16)]
+    assert riccati["median_ms"] == 12.0 and riccati["ratio_riccati"] == 1.0
+    assert riccati["ratio_osqp"] == pytest.approx(12.0 / 1100.0)
+    assert riccati["admm_ratio_osqp"] == pytest.approx(5.0 / 950.0)
+    single = summary.loc[("r1", "c3plus-riccati", "float64", 1)]
+    assert math.isnan(single["ratio_osqp"]) and single["ratio_riccati"] == 1.0
+    f32 = summary.loc[("r1", "c3plus-riccati", "float32", 16)]
+    assert f32["ratio_riccati"] == pytest.approx(0.5)
+    assert f32["admm_ratio_riccati"] == pytest.approx(2.0 / 5.0)
+    assert summary.loc[("r2", "c3plus-riccati", "float64", 16)]["ratio_riccati"] == 1.0
+    assert math.isnan(summary.loc[("r2", "c3plus-riccati", "float64", 16)]["ratio_osqp"])
+    # GFLOP/s = MFLOP / ms, share of the row precision's matmul rate
+    assert riccati["gflops"] == pytest.approx(20.0 / 5.0)
+    assert riccati["rate_share"] == pytest.approx(0.4)
+    assert f32["rate_share"] == pytest.approx(10.0 / 20.0)
+    assert math.isnan(summary.loc[("r1", "c3-osqp", "float64", 16)]["gflops"])
+
+
+def test_ratios_are_nan_without_the_reference() -> None:
+    summary = pd.DataFrame({"run_id": ["a"], "host": ["h"], "backend": ["x"],
+                            "precision": ["float64"], "samples": [4], "repeats": [3],
+                            "median_ms": [2.0], "admm_ms": [1.0]})
+    out = add_ratios(summary)
+    assert out[["ratio_riccati", "ratio_osqp", "admm_ratio_riccati"]].isna().all().all()
+
+
+def test_printed_lines_carry_ratios_rate_and_load() -> None:
+    text = format_line(_frame()[lambda f: f["run_id"] == "r1"])
+    line = next(t for t in text.splitlines() if "float32" in t)
+    assert "t/riccati 0.5" in line and "GFLOP/s (50.0 % of matmul)" in line
+    assert "load 0.50" in line and "weighting 1.00" in line
+
+
+def test_layout_one_files_are_read_with_nan_columns(tmp_path: Path) -> None:
+    frame = _frame()
+    old = frame.drop(columns=list(perf_store.PERF_V2_COLUMNS))
+    runs = store.perf_dir(tmp_path) / store.PERF_RUNS
+    runs.mkdir(parents=True)
+    (runs / "old.parquet").write_bytes(store.parquet_bytes(old))  # as the layout-1 writer did
+    perf_store.consolidate_perf(tmp_path)
+    read = perf_store.read_perf(tmp_path)
+    assert list(read.columns) == list(perf_store.PERF_COLUMNS)
+    assert (read["perf_schema_version"] == 1).all() and not read["weighted"].any()
+    assert read["admm_ms"].isna().all() and read["matmul_gflops_f64"].isna().all()
+    np.testing.assert_array_equal(read["total_ms"], frame["total_ms"])
+    csv = perf_store.perf_files(tmp_path)[1]
+    (store.perf_dir(tmp_path) / "perf.parquet").unlink()
+    old.to_csv(csv, index=False)
+    assert perf_store.read_perf(tmp_path)["admm_mflop"].isna().all()
+
+
+def test_new_files_round_trip_and_carry_the_layout(tmp_path: Path) -> None:
+    frame = _frame()
+    parquet, _ = perf_store.write_perf(frame, tmp_path)
+    pd.testing.assert_frame_equal(perf_store.read_perf(tmp_path), frame, check_dtype=False)
+    metadata = pq.read_table(parquet).schema.metadata
+    assert metadata[perf_store.PERF_METADATA_KEY] == str(perf_store.PERF_SCHEMA_VERSION).encode()
+    assert metadata[store.PARQUET_METADATA_KEY] == str(store.SCHEMA_VERSION).encode()
+    assert len(perf_store.perf_run_files(tmp_path)) == 2  # one file per run id
+    newer = frame.assign(perf_schema_version=perf_store.PERF_SCHEMA_VERSION + 1)
+    with pytest.raises(SchemaVersionError, match="layout"):
+        perf_store.upgrade_perf_frame(newer, parquet)
+
+
+def test_gpu_lines_show_ratios_to_the_compiled_cpu_kernel(tmp_path: Path) -> None:
+    import json
+
+    from c3bench.bench.perf_report import gpu_lines
+
+    rows = [{"backend": "c3plus-compiled", "device": "cpu", "device_kind": "cpu",
+             "precision": "float64", "samples": 16, "admm_ms_median": 4.0,
+             "admm_ms_p95": 5.0, "load_avg": 0.5},
+            {"backend": "c3plus-jax", "device": "gpu", "device_kind": "NVIDIA H200",
+             "precision": "float64", "samples": 16, "admm_ms_median": 2.0,
+             "admm_ms_p95": 2.5, "load_avg": 0.5}]
+    (tmp_path / "run.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    text = "\n".join(gpu_lines(tmp_path))
+    assert "| c3plus-jax | gpu | NVIDIA H200 | float64 | 16 | 2 | 2.5 | 0.5 | 0.50 |" in text
+    assert gpu_lines(tmp_path / "absent") == []
