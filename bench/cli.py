@@ -297,8 +297,9 @@ def _add_perf(sub: Any) -> None:
                                       "step (bench/perf.py).")
     add_list(perf, "--samples", metavar="N", item=positive_int, default=DEFAULT_SAMPLES,
              help="numbers of model samples")
-    add_list(perf, "--backend", metavar="NAME", choices=BACKENDS, default=BACKENDS,
-             help="backends")
+    add_list(perf, "--backend", metavar="NAME", default=BACKENDS,
+             help="backends; c3-<QP backend> runs the reference controller with any registry "
+                  "QP backend that takes c3plus_qp (e.g. c3-daqp, c3-proxqp_dense)")
     add_list(perf, "--precision", metavar="PRECISION", choices=tuple(Precision),
              default=defaults.precisions, help="precisions of the c3plus backends")
     perf.add_argument("--device", choices=DEVICES, default=defaults.device,

@@ -75,6 +75,7 @@ from c3bench.bench.perf_backends import (
     Configuration,
     PerfContext,
     PreparedBackend,
+    backend_spec,
     precisions_of,
     sample_sides,
 )
@@ -132,9 +133,11 @@ class PerfSettings:
         self.samples = tuple(int(n) for n in self.samples)
         if not self.samples or min(self.samples) < 1:
             raise InputError(f"samples must be integers >= 1, got {self.samples}")
-        unknown = set(self.backends) - set(BACKENDS)
+        unknown = [name for name in self.backends if backend_spec(name) is None]
         if unknown:
-            raise InputError(f"unknown backends {sorted(unknown)}; known: {', '.join(BACKENDS)}")
+            raise InputError(f"--backend: unknown backends {sorted(unknown)}; known: "
+                             f"{', '.join(BACKENDS)}, or c3-<any registry QP backend taking "
+                             f"c3plus_qp>")
         if set(self.precisions) - set(Precision):
             raise InputError(f"precisions must be float64 or float32, got {self.precisions}")
         if self.device not in DEVICES:
@@ -282,7 +285,8 @@ def run_perf(settings: PerfSettings, echo: Callable[[str], None] | None = print
 def _configurations(settings: PerfSettings) -> list[Configuration]:
     out: list[Configuration] = []
     for backend in settings.backends:
-        spec = BACKEND_TABLE[backend]
+        spec = backend_spec(backend)
+        assert spec is not None  # checked by PerfSettings
         device = settings.device if settings.device in spec.devices else "cpu"
         for precision in precisions_of(spec, settings.precisions):
             out.extend(Configuration(backend, str(precision), device, samples)
@@ -332,7 +336,8 @@ def _run_one(run: _Run, settings: PerfSettings, config: Configuration,
              say: Callable[[str], None]) -> list[dict[str, Any]]:
     label = (f"{config.backend:<15} {config.precision:<8} {config.device:<4} "
              f"samples={config.samples:<5}")
-    spec = BACKEND_TABLE[config.backend]
+    spec = backend_spec(config.backend)
+    assert spec is not None  # checked by PerfSettings
 
     def skip(note: str) -> list[dict[str, Any]]:
         say(f"{label} skipped: {note}")

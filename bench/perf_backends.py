@@ -239,7 +239,7 @@ def reference_step(context: PerfContext, config: Configuration) -> Step:
     from c3bench.problems.scene import build_scene
     from c3bench.solvers.c3 import C3Controller, C3Options
 
-    options = C3Options(qp_backend=REFERENCE_QP_BACKENDS[config.backend], keep_iterates=False,
+    options = C3Options(qp_backend=reference_qp(config.backend), keep_iterates=False,
                         admm_iterations=context.iterations)
     controller = C3Controller(options)
     scenes = [build_scene(l=float(side), config=context.config)
@@ -275,7 +275,7 @@ def make_reference(context: PerfContext, config: Configuration) -> PreparedBacke
     if config.samples not in REFERENCE_SAMPLES:
         raise BackendUnavailable(f"the reference controller is measured at samples "
                                  f"{'/'.join(map(str, REFERENCE_SAMPLES))} only")
-    qp = REFERENCE_QP_BACKENDS[config.backend]
+    qp = reference_qp(config.backend)
     if not registry.get(qp).availability()[0]:
         raise BackendUnavailable(f"{qp} not available")
     step = reference_step(context, config)
@@ -305,7 +305,36 @@ BACKEND_TABLE: dict[str, BackendSpec] = {spec.name: spec for spec in (
     BackendSpec("c3-clarabel", make_reference, "reference controller, Clarabel inside",
                 reference=True),
 )}
-"""Every backend of ``c3bench perf``, in run order."""
+"""The default backends of ``c3bench perf``, in run order."""
+
+REFERENCE_PREFIX = "c3-"
+
+
+def reference_qp(name: str) -> str:
+    """The registry QP backend of a reference-controller name ``c3-<backend>``."""
+    return REFERENCE_QP_BACKENDS.get(name, name.removeprefix(REFERENCE_PREFIX))
+
+
+def backend_spec(name: str) -> BackendSpec | None:
+    """The table's entry, or, for ``c3-<QP backend>`` with any registry backend that takes the
+    ``c3plus_qp`` family, the reference controller with that backend inside: its control step is
+    the 10 QP steps of one real ADMM run (rho, hence P, changes every iteration), timed end to
+    end, so a run answers which QP backend makes a C3+ step fastest; ``None`` when unknown."""
+    if name in BACKEND_TABLE:
+        return BACKEND_TABLE[name]
+    if not name.startswith(REFERENCE_PREFIX):
+        return None
+    from c3bench.problems.names import Family
+    from c3bench.solvers import registry
+
+    try:
+        backend = registry.get(reference_qp(name))
+    except KeyError:
+        return None
+    if Family.C3PLUS_QP not in backend.families:
+        return None
+    return BackendSpec(name, make_reference, f"reference controller, {backend.name} inside",
+                       reference=True)
 
 
 def precisions_of(spec: BackendSpec, wanted: Sequence[str]) -> tuple[str, ...]:

@@ -65,3 +65,19 @@ def test_compiled_backend_reports_why_it_cannot_run(monkeypatch: pytest.MonkeyPa
     monkeypatch.setitem(sys.modules, "c3bench.solvers.admm.compiled_solver", None)
     with pytest.raises(BackendUnavailable, match=r"^compiled kernel unavailable: "):
         make_compiled(None, Configuration("c3plus-compiled", "float64", "cpu", 1))  # type: ignore[arg-type]
+
+
+def test_any_qp_backend_can_sit_inside_the_reference_controller() -> None:
+    """``c3-<QP backend>``: the controller-sequence measurement (10 QP steps of one ADMM run
+    through that backend, timed end to end) for any registry backend taking c3plus_qp."""
+    from c3bench.bench.perf import PerfSettings
+    from c3bench.bench.perf_backends import backend_spec, reference_qp
+    from c3bench.problems.errors import InputError
+
+    spec = backend_spec("c3-daqp")
+    assert spec is not None and spec.reference and spec.make is backend_spec("c3-osqp").make
+    assert reference_qp("c3-daqp") == "daqp" and reference_qp("c3-osqp") == "osqp"
+    assert backend_spec("c3-lemke") is None  # an LCP solver cannot take the QP step
+    assert backend_spec("c3-nope") is None and backend_spec("riccati") is None
+    with pytest.raises(InputError, match="--backend: unknown backends"):
+        PerfSettings(backends=("c3-nope",))
