@@ -54,7 +54,7 @@ from c3bench.bench.reference import (
     save_references,
 )
 from c3bench.bench.rows import CellOutcome, reference_task, run_cell
-from c3bench.problems.capture import SUITES
+from c3bench.problems.capture import SUITES, SuiteSpec
 from c3bench.problems.errors import InputError
 from c3bench.problems.identity import (
     InstanceIdentity,
@@ -113,11 +113,21 @@ class _Tally:
 
 def ensure_instances(spec: Any, paths: store.SuitePaths, capture: Any = None,
                      progress: bool = True, skip_bad: bool = False) -> InstanceSet:
-    """Generate the suite's instances under ``paths.instances`` unless already there, then
-    read them (a bad file stops the run, or with ``skip_bad`` is listed and left out)."""
-    if not (paths.instances / "manifest.json").exists():
-        from c3bench.problems.suites import generate_suite
+    """Generate the suite's instances under ``paths.instances`` unless already there and written
+    by today's generator for a packaged suite's definition (an out-of-date suite is replaced, with
+    a note on stderr; its stale cells are then removed by the identity check), then read them (a
+    bad file stops the run, or with ``skip_bad`` is listed and left out)."""
+    from c3bench.problems.suites import generate_suite, out_of_date
 
+    manifest_path = paths.instances / "manifest.json"
+    known = SUITES.get(spec) if isinstance(spec, str) else spec
+    if manifest_path.exists() and isinstance(known, SuiteSpec):
+        why = out_of_date(known, json.loads(manifest_path.read_text()))
+        if why:
+            print(f"note: regenerating the {known.name} instances under {paths.instances}: {why}",
+                  file=sys.stderr)
+            generate_suite(known, paths.instances, capture=capture, progress=progress)
+    if not manifest_path.exists():
         generate_suite(spec, paths.instances, capture=capture, progress=progress)
     return read_instances(paths.instances, skip_bad)
 

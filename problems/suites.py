@@ -322,6 +322,24 @@ def _trajectory_json(index: int, trajectory: Trajectory, cfg: Config) -> dict[st
             "ball_start": [float(v) for v in start], "push_height": trajectory.push_height}
 
 
+GENERATOR_VERSION = 2
+"""Version of what :func:`generate_suite` writes for a given spec and config; raised whenever
+the instances change (2: ball-table contact, bounded and equality variants, several pushes).
+A stored suite of another version (or of another spec) is out of date
+(:func:`out_of_date`)."""
+
+
+def out_of_date(spec: SuiteSpec, manifest: dict[str, Any]) -> str:
+    """Why a stored suite's ``manifest`` was not written by today's generator for ``spec``
+    (``""`` when it was): another generator version, or another suite definition."""
+    stored = manifest.get("generator_version")
+    if stored != GENERATOR_VERSION:
+        return f"written by suite generator version {stored} (now {GENERATOR_VERSION})"
+    if json.loads(json.dumps(manifest.get("suite"))) != json.loads(json.dumps(asdict(spec))):
+        return f"the definition of suite {spec.name!r} changed"
+    return ""
+
+
 def _write_suite(spec: SuiteSpec, out: Path, cfg: Config, capture: Capture,
                  progress: bool) -> list[Path]:
     """Write every instance and the manifest of ``spec`` into ``out``."""
@@ -372,7 +390,8 @@ def _write_suite(spec: SuiteSpec, out: Path, cfg: Config, capture: Capture,
             key = f"{problem.family}/{problem.meta.get('variant', '')}".rstrip("/")
             variant_counts[key] = variant_counts.get(key, 0) + 1
     assert mpc.limits is not None
-    manifest = {"suite": asdict(spec), "states": chosen, "counts": dict(sorted(counts.items())),
+    manifest = {"generator_version": GENERATOR_VERSION, "suite": asdict(spec), "states": chosen,
+                "counts": dict(sorted(counts.items())),
                 "counts_by_variant": dict(sorted(variant_counts.items())),
                 "trajectories": [_trajectory_json(t, trajectory, cfg)
                                  for t, trajectory in enumerate(spec.trajectories)],

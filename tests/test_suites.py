@@ -126,3 +126,33 @@ def test_suite_spec_rejects_bad_fields() -> None:
         SuiteSpec("x", 1, (0,), (0,), qp_variants=("boxed",))  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="iterations_per_state"):
         SuiteSpec("x", 1, (0,), (0,), iterations_per_state=-1)
+
+
+def test_an_out_of_date_stored_suite_is_regenerated(quick_dir: Path, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """A results folder holding instances of an older generator (or of another definition of
+    the suite) is regenerated before a run; an up-to-date one is read as it is."""
+    import shutil
+
+    from c3bench.bench import store
+    from c3bench.bench.runner import ensure_instances
+    from c3bench.problems.suites import GENERATOR_VERSION, out_of_date
+
+    manifest = json.loads((quick_dir / "manifest.json").read_text())
+    assert manifest["generator_version"] == GENERATOR_VERSION
+    assert out_of_date(SUITES["quick"], manifest) == ""
+    assert "definition" in out_of_date(SUITES["default"], {**manifest, "suite": manifest["suite"]})
+    paths = store.SuitePaths.of(tmp_path, "quick")
+    shutil.copytree(quick_dir, paths.instances)
+    stamp = (paths.instances / "manifest.json").stat().st_mtime_ns
+    ensure_instances("quick", paths, progress=False)
+    assert (paths.instances / "manifest.json").stat().st_mtime_ns == stamp  # up to date: kept
+    old = {**manifest, "generator_version": 1}
+    (paths.instances / "manifest.json").write_text(json.dumps(old))
+    (paths.instances / "lcp" / "stale-leftover.json").write_text("{}")
+    assert "version 1" in out_of_date(SUITES["quick"], old)
+    instances = ensure_instances("quick", paths, progress=False)
+    assert "regenerating the quick instances" in capsys.readouterr().err
+    assert json.loads((paths.instances / "manifest.json").read_text()) == manifest
+    assert not (paths.instances / "lcp" / "stale-leftover.json").exists()
+    assert len(instances.problems) == sum(manifest["counts"].values())
