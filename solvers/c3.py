@@ -95,7 +95,6 @@ def project_step_c3plus(v: np.ndarray, layout: HorizonLayout, rho: Mapping[str, 
     return out
 
 
-_mpcc_vector = mpcc_vector
 
 
 # --- LCS rollout and sample scoring -----------------------------------------------------------
@@ -143,7 +142,7 @@ def rollout_vector(lcs: LCS, mpc: MPC, x0: np.ndarray, inputs: np.ndarray
     steps[:, layout.index(0, "lam")] = lams
     steps[:, layout.index(0, "u")] = us
     steps[:, layout.index(0, "eta")] = etas
-    return _mpcc_vector(steps, xs[-1])
+    return mpcc_vector(steps, xs[-1])
 
 
 Observation = tuple[np.ndarray, np.ndarray, np.ndarray]

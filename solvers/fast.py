@@ -120,10 +120,9 @@ from c3bench.problems.families import dynamics_rows
 from c3bench.problems.instance import Problem
 from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC, HorizonLayout
-from c3bench.problems.names import BLOCKS, Block, Precision, Variant
+from c3bench.problems.names import BLOCKS, Block, Precision
 from c3bench.solvers.admm.controller import FastC3PlusController, solve_batched
 from c3bench.solvers.admm.kernel import KernelFailure, StepInputs
-from c3bench.solvers.admm.loop import cold_iterates, shift_warm_start
 from c3bench.solvers.admm.options import C3Options
 from c3bench.solvers.admm.projection import make_step_projection
 from c3bench.solvers.admm.schedules import schedule_for
@@ -140,12 +139,10 @@ __all__ = [
     "RiccatiOptions",
     "factorize",
     "fast_options",
-    "shift_warm",
     "solve_c3plus_qp",
     "solve_lq",
 ]
 
-shift_warm = shift_warm_start
 
 
 # --- options, factor, cache -------------------------------------------------------------------
@@ -680,11 +677,7 @@ class FastC3Plus:
                  cache: FactorCache | None = None, record_residuals: bool = False,
                  prefactorize: bool = True, chunk_bytes: int = 64 * 2**20) -> None:
         options = options or C3Options(keep_iterates=False)
-        if options.variant != Variant.C3PLUS:
-            raise ValueError("FastC3Plus runs the c3plus variant only")
-        if options.input_bounds:
-            raise ValueError("FastC3Plus does not take input bounds in the QP step (the box "
-                             "limits of mpc.limits go into its projection)")
+        options.check_batched_c3plus("FastC3Plus")
         self.mpc = mpc
         self.options = options
         self.riccati = riccati or RiccatiOptions()
@@ -895,11 +888,6 @@ class FastC3Plus:
                                   self._upper, self._p, self._shared)
         self.timings.projection += time.perf_counter() - t2
         return steps, terminal, new_delta
-
-    def cold_start(self, lcs: LCSBatch, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``delta_k = (x0, 0, 0, 0)``, ``w = 0`` for every sample: (n, T, ns) each."""
-        return cold_iterates(self.layout_of(lcs), np.asarray(x0, dtype=float), lcs.n_samples,
-                             self.dtype)
 
     def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
               delta: np.ndarray | None = None, w: np.ndarray | None = None,

@@ -50,7 +50,7 @@ import numpy as np
 from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC, HorizonLayout
-from c3bench.problems.names import Precision, Variant
+from c3bench.problems.names import Precision
 from c3bench.solvers.admm.controller import solve_batched
 from c3bench.solvers.admm.kernel import StepInputs
 from c3bench.solvers.admm.loop import admm_iteration
@@ -196,10 +196,7 @@ class JaxC3Plus:
                  unroll: int = 1) -> None:
         jax, _, _ = jax_modules()
         options = options or C3Options(keep_iterates=False)
-        if options.variant != Variant.C3PLUS:
-            raise ValueError("JaxC3Plus runs the c3plus variant only")
-        if options.input_bounds:
-            raise ValueError("JaxC3Plus does not take input bounds")
+        options.check_batched_c3plus("JaxC3Plus")
         if precision not in tuple(Precision):
             raise ValueError(f"precision must be one of {tuple(map(str, Precision))}, got "
                              f"{precision!r}")
@@ -437,9 +434,3 @@ class _TracedKernel:
     def __init__(self, iterate: Callable[[Any, Any, Any], tuple[Any, Any, Any]]) -> None:
         self.iterate = iterate
 
-
-def _weights(weights: Sequence[float] | None, n: int) -> np.ndarray:
-    """Normalised, floored sample weights (:func:`c3bench.solvers.admm.loop.normalise_weights`)."""
-    from c3bench.solvers.admm.loop import normalise_weights
-
-    return normalise_weights(weights, n)

@@ -20,7 +20,7 @@ import numpy as np
 
 from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC, HorizonLayout
-from c3bench.problems.names import Precision, Variant
+from c3bench.problems.names import Precision
 from c3bench.solvers.admm.compiled import CompiledC3PlusKernel
 from c3bench.solvers.admm.controller import solve_batched
 from c3bench.solvers.admm.kernel import StepInputs
@@ -56,11 +56,7 @@ class CompiledC3Plus:
                  precision: str = Precision.FLOAT64, riccati: RiccatiOptions | None = None,
                  shared_inputs: bool = True, record_residuals: bool = False) -> None:
         options = options or C3Options(keep_iterates=False)
-        if options.variant != Variant.C3PLUS:
-            raise ValueError("CompiledC3Plus runs the c3plus variant only")
-        if options.input_bounds:
-            raise ValueError("CompiledC3Plus does not take input bounds in the QP step (the "
-                             "box limits of mpc.limits go into its projection)")
+        options.check_batched_c3plus("CompiledC3Plus")
         self.mpc = mpc
         self.options = options
         self.kernel = CompiledC3PlusKernel(mpc, Precision(precision), riccati)

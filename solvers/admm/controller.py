@@ -87,16 +87,6 @@ def solve_robust(lcs_samples: Sequence[LCS], weights: Sequence[float] | np.ndarr
                     float(mpc.force_limit))
 
 
-class BatchedKernel(Protocol):
-    """A kernel over an LCS batch (:class:`c3bench.solvers.admm.kernel.Kernel` plus setup)."""
-
-    name: str
-    dtype: Any
-
-    def bind(self, lcs: LCSBatch) -> None:
-        """Use this LCS batch for the next control step."""
-
-
 def solve_batched(kernel: Any, lcs: LCSBatch, mpc: MPC, x0: np.ndarray, options: C3Options,
                   weights: Sequence[float] | None = None, delta: np.ndarray | None = None,
                   w: np.ndarray | None = None, fallback_input: np.ndarray | None = None,

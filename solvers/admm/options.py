@@ -192,6 +192,16 @@ class C3Options:
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
 
+    def check_batched_c3plus(self, kernel: str) -> None:
+        """``ValueError`` unless a batched C3+ kernel (numpy Riccati, compiled, JAX) can run
+        these options: variant ``c3plus`` and no input bounds in the QP step (their QP step is
+        an unconstrained LQ problem; the limits of ``mpc.limits`` go into their projection)."""
+        if self.variant != Variant.C3PLUS:
+            raise ValueError(f"{kernel} runs the c3plus variant only")
+        if self.input_bounds:
+            raise ValueError(f"{kernel} does not take input bounds in the QP step (the box "
+                             f"limits of mpc.limits go into its projection)")
+
     @property
     def qp_family(self) -> Family:
         """The family of the QP step: ``c3plus_qp`` or ``c3_qp``."""
