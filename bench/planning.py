@@ -26,8 +26,8 @@ from c3bench.problems.names import Precision, Profile, Start
 from c3bench.solvers import registry
 from c3bench.solvers.child_process import STARTUP_SECONDS
 
-STARTS: tuple[Start, ...] = tuple(Start)
-"""Both starts, cold first."""
+STARTS: tuple[Start, ...] = (Start.COLD, Start.WARM)
+"""The starts of a run unless chosen otherwise, cold first."""
 DEFAULT_PRECISIONS: tuple[Precision, ...] = tuple(Precision)
 """Both precisions, float64 first (float32 cells only where a backend runs in it)."""
 DEFAULT_SETTINGS: tuple[Profile, ...] = (Profile.DEFAULT,)

@@ -30,6 +30,9 @@ class Family(StrEnum):
     """The whole-horizon MPC with complementarity constraints."""
     LCP = "lcp"
     """Forward-simulation LCP ``0 <= lam perp F lam + q >= 0`` with symmetric PSD ``F``."""
+    LCP_GENERAL = "lcp_general"
+    """An LCP ``0 <= lam perp F lam + q >= 0`` with ``F`` stored as is (not symmetric, e.g. the
+    Stewart-Trinkle contact model): not a QP, solved by pivoting, splitting or an MIQP."""
     QP = "qp"
     """A generic convex QP in qpsolvers' form (``P q G h A b lb ub``), brought by the user
     (``c3bench problems import``); no cube metadata."""
@@ -38,7 +41,7 @@ class Family(StrEnum):
 SUITE_FAMILIES: Final = (Family.C3PLUS_QP, Family.C3_QP, Family.PROJECTION, Family.MPCC,
                          Family.LCP)
 """Families the cube-tipping suites generate (``problems generate``)."""
-GENERIC_FAMILIES: Final = (Family.QP, Family.MPCC, Family.LCP)
+GENERIC_FAMILIES: Final = (Family.QP, Family.MPCC, Family.LCP, Family.LCP_GENERAL)
 """Families whose instances need no cube metadata (an imported problem may belong to them)."""
 QP_FAMILIES: Final = (Family.C3PLUS_QP, Family.C3_QP, Family.LCP, Family.QP)
 """Families a convex QP solver can take (every convex QP backend handles equality and
@@ -112,6 +115,9 @@ class Start(StrEnum):
 
     COLD = "cold"
     WARM = "warm"
+    SEQUENCE = "sequence"
+    """The whole ADMM run of the instance's state with this QP backend as its QP step, timed
+    end to end (the QP steps a controller solves at one control step)."""
 
 
 class Failure(StrEnum):
