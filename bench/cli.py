@@ -420,11 +420,20 @@ def _add_closed_loop(sub: Any) -> None:
     trials.set_defaults(handler=cmd_closed_loop_trials)
 
     suite = sub.add_parser("closed-loop-suite",
-                           help="closed-loop runs: backends x controllers x seeds",
-                           description="Run a closed-loop suite (resumable) and write its "
-                                       "report.")
+                           help="closed-loop suites: configurations x randomized trials",
+                           description="Run every configuration of a closed-loop suite on "
+                                       "the same randomized trials (resumable) and write its "
+                                       "report: success rates with Wilson 95% intervals, "
+                                       "success against the model's cube side, metric "
+                                       "distributions and the seed's claims tested.")
     suite.add_argument("--suite", choices=tuple(CLOSED_LOOP_SUITES), default="quick",
                        help="closed-loop suite (default: quick)")
+    suite.add_argument("--trials", type=positive_int, default=None, metavar="N",
+                       help="trials per configuration (default: the suite's, "
+                            + ", ".join(f"{name} {s.trials}"
+                                        for name, s in CLOSED_LOOP_SUITES.items())
+                            + "); trial i is the same episode whatever N, so a larger N "
+                              "reuses the stored trials")
     add_executor(suite, "runs")
     add_results(suite, "writes ROOT/closed_loop/<suite>/")
     suite.add_argument("--no-render", action="store_true", help="skip the animation")

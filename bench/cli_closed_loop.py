@@ -137,17 +137,34 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
-    """Run a closed-loop suite (resumable) and write its report."""
-    from c3bench.bench.closed_loop_suite import CLOSED_LOOP_SUITES, run_cases, write_report
+def suite_trials(args: argparse.Namespace, default: int) -> int:
+    """The episodes per configuration of ``closed-loop-suite``: ``--trials N`` when given
+    (an integer >= 1; :class:`InputError` otherwise), else the suite's ``default``."""
+    trials = getattr(args, "trials", None)
+    if trials is None:
+        return default
+    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
+        raise InputError(f"--trials must be an integer >= 1, got {trials!r}")
+    return trials
 
+
+def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
+    """Run a closed-loop suite (configurations x randomized trials, resumable) and write its
+    report (:func:`bench.closed_loop_report.write_trials_report`)."""
+    from c3bench.bench.closed_loop_report import write_trials_report
+    from c3bench.bench.closed_loop_suite import CLOSED_LOOP_SUITES, run_cases
+
+    suite = CLOSED_LOOP_SUITES[args.suite]
+    trials = suite_trials(args, suite.trials)
     directory = writable_directory(store.closed_loop_dir(args.results, args.suite),
                                    "--results")
-    run = run_cases(CLOSED_LOOP_SUITES[args.suite], directory, jobs=args.jobs,
-                    scheduler=args.scheduler, rerun=args.rerun, progress=not args.quiet)
-    report = write_report(run, f"suite `{args.suite}`", render=not args.no_render)
+    cases = suite.cases(trials)
+    run = run_cases(cases, directory, jobs=args.jobs, scheduler=args.scheduler,
+                    rerun=args.rerun, progress=not args.quiet)
+    report = write_trials_report(run, suite, trials, render=not args.no_render)
     succeeded = sum(bool(row.get("success")) for row in run.rows)
-    print(f"{len(run.rows)} runs ({run.skipped} stored), {succeeded} succeeded; report: {report}")
+    print(f"{len(suite.configurations)} configurations x {trials} trials: {len(run.rows)} "
+          f"episodes ({run.skipped} stored), {succeeded} succeeded; report: {report}")
     return _missing(run)
 
 

@@ -1,12 +1,20 @@
-"""The report of a closed-loop suite, sweep or trials run: ``report.md`` with the outcome
-table (success, gentle success, peak angle, hold time, clipped inputs, plan consistency,
-failure labels, step times), the failure-mode map of a sweep, and ``figures/`` (angle error
-bars, angle trajectories, step-time distributions, an animation of a successful run).
+"""The report of a closed-loop suite or sweep.
+
+* :func:`write_trials_report` (``closed-loop-suite``: configurations x randomized trials):
+  per configuration the success and gentle-success rates with Wilson 95 % intervals and the
+  metric medians, the success-rate figure, the success-vs-``l`` curve, the metric
+  distributions (:mod:`bench.closed_loop_figures`) and the claims paragraph (Newcombe's
+  interval for each difference of rates).
+* :func:`write_report` (``sweep``, and any list of single cases): one row per run (success,
+  gentle success, peak angle, hold time, clipped inputs, plan consistency, failure labels,
+  step times), the failure-mode map of a sweep, and ``figures/`` (angle error bars, angle
+  trajectories, step-time distributions, an animation of a successful run).
 """
 
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -15,13 +23,20 @@ import numpy as np
 import pandas as pd
 
 from c3bench.bench.closed_loop import render_run
+from c3bench.bench.closed_loop_figures import (
+    ConfigurationResult,
+    plot_distributions,
+    plot_l_curve,
+    plot_success_rates,
+)
+from c3bench.bench.trials import TrialSummary, newcombe_interval, trial_summary
 from c3bench.problems.config import Config, load_config
 from c3bench.problems.errors import RenderUnavailable
 from c3bench.problems.instance import atomic_write_bytes
 from c3bench.problems.scene import build_scene
 
 if TYPE_CHECKING:
-    from c3bench.bench.closed_loop_suite import SuiteRun
+    from c3bench.bench.closed_loop_suite import ClosedLoopSuite, Comparison, SuiteRun
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
@@ -231,3 +246,211 @@ def sweep_grid(frame: pd.DataFrame) -> str:
     return ("Each cell: the failure-mode label (angle error at the end, rad).\n\n"
             + "\n".join(lines))
 
+
+
+# --- randomized-trial suites: outcomes per configuration with intervals ----------------------
+def _percent(low: float, high: float) -> str:
+    return f"{100 * low:.0f}-{100 * high:.0f} %"
+
+
+def _rate_cell(successes: int, n: int, interval: tuple[float, float]) -> str:
+    """``14/20 (70 %; 48-85 %)``: count, share and Wilson 95 % interval."""
+    if not n:
+        return "0/0"
+    return f"{successes}/{n} ({100 * successes / n:.0f} %; {_percent(*interval)})"
+
+
+def configuration_results(frame: pd.DataFrame, suite: ClosedLoopSuite
+                          ) -> list[ConfigurationResult]:
+    """One :class:`ConfigurationResult` per configuration of ``suite``, in its order (an
+    unrun configuration has ``n = 0``)."""
+    out = []
+    for configuration in suite.configurations:
+        rows = frame[frame["config"] == configuration.name] if "config" in frame \
+            else frame.iloc[0:0]
+        title = configuration.title + "".join(f" = {also}" for also in configuration.also)
+        out.append(ConfigurationResult(configuration.name, title, str(configuration.group),
+                                       trial_summary(rows.to_dict("records")), rows))
+    return out
+
+
+def _median_cell(summary: TrialSummary, column: str, scale: float = 1.0,
+                 digits: str = ".3g") -> str:
+    value = summary.medians.get(column, math.nan)
+    return "-" if math.isnan(value) else format(scale * value, digits)
+
+
+def _load_cell(rows: pd.DataFrame) -> str:
+    loads = pd.to_numeric(rows.get("load_average", pd.Series(dtype=float)), errors="coerce")
+    loads = loads[np.isfinite(loads)]
+    return f"{loads.median():.1f}" if len(loads) else "-"
+
+
+def outcome_table(results: Sequence[ConfigurationResult]) -> str:
+    """The per-configuration table of a trials suite (markdown)."""
+    header = ["configuration", "group", "n", "success (95 % CI)", "gentle (95 % CI)",
+              "median peak angle (rad)", "passed balance", "median hold (s)",
+              "median step (ms)", "load", "labels"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for result in results:
+        s = result.summary
+        unavailable = s.n and s.errors == s.n
+        labels = ", ".join(f"{label} {count}" for label, count in s.labels)
+        if unavailable:
+            labels = "unavailable: " + str(result.rows["error"].iloc[0]).replace("|", "/")
+        lines.append("| " + " | ".join([
+            result.title, result.group, str(s.n),
+            _rate_cell(s.successes, s.n, s.success_interval),
+            _rate_cell(s.gentle, s.n, s.gentle_interval),
+            _median_cell(s, "peak_angle", digits=".2f"),
+            f"{100 * s.passed_balance / s.n:.0f} %" if s.n else "-",
+            _median_cell(s, "hold_time", digits=".2f"),
+            _median_cell(s, "median_step_time", 1e3, ".3g"),
+            _load_cell(result.rows), labels]) + " |")
+    return "\n".join(lines)
+
+
+def _l_curve_lines(results: Sequence[ConfigurationResult], suite: ClosedLoopSuite,
+                   figures: Path, true_side: float) -> list[str]:
+    by_name = {r.name: r for r in results}
+    points = [(side, by_name[name].summary) for side, name in suite.l_curve
+              if name in by_name and by_name[name].summary.n]
+    if not points:
+        return ["## Success against the model's cube side", "",
+                "No episode of the curve's configurations was run.", ""]
+    plot_l_curve(points, figures / "closed_loop_l_curve.png", true_side,
+                 "fast C3+, one model, feedback")
+    rows = ["| model l (m) | success (95 % CI) |", "|---|---|"]
+    rows += [f"| {side:g} | {_rate_cell(s.successes, s.n, s.success_interval)} |"
+             for side, s in points]
+    return ["## Success against the model's cube side", "",
+            "Fast C3+ with one model and low-level feedback (the ablation's `no-samples`), "
+            "its model's side `l` varied; the plants' sides are drawn from U[0.28, 0.32] m.",
+            "", *rows, "", "![l curve](figures/closed_loop_l_curve.png)", "",
+            "*Success rate (dots, `k/n` above) against the model's cube side (m), Wilson 95 % "
+            "band shaded; dashed: the nominal true side.*", ""]
+
+
+def _verdict(interval: tuple[float, float]) -> str:
+    if interval[0] > 0:
+        return "better with the choice"
+    if interval[1] < 0:
+        return "worse with the choice"
+    return "no difference resolved"
+
+
+def _overlap(a: TrialSummary, b: TrialSummary) -> bool:
+    return not (a.success_interval[0] > b.success_interval[1]
+                or b.success_interval[0] > a.success_interval[1])
+
+
+def claims_lines(results: Sequence[ConfigurationResult],
+                 comparisons: Sequence[Comparison]) -> list[str]:
+    """The auto-written claims paragraph: each comparison's success rates, the difference
+    with Newcombe's hybrid score 95 % interval, whether the two Wilson intervals overlap, and
+    per claim a verdict (it survives when every comparison's interval lies above 0)."""
+    by_name = {r.name: r.summary for r in results}
+    lines = ["## The seed's claims under randomized trials", "",
+             "Each claim is tested on pairs of configurations that differ in that choice "
+             "alone. The test is Newcombe's hybrid score 95 % interval for the difference of "
+             "the two success rates (R. G. Newcombe, Stat. Med. 17 (1998) 873-890, method "
+             "10): a difference is resolved when its interval excludes 0. Overlapping Wilson "
+             "intervals are reported too, but they are not the test (two rates can differ "
+             "significantly although their intervals overlap). Both configurations of a "
+             "pair run the same trial draws; the interval treats them as independent "
+             "samples, which is conservative for paired episodes.", ""]
+    verdicts: dict[str, list[str]] = {}
+    for comparison in comparisons:
+        a, b = by_name.get(comparison.with_choice), by_name.get(comparison.without)
+        if a is None or b is None or not a.n or not b.n:
+            continue
+        interval = newcombe_interval(a.successes, a.n, b.successes, b.n)
+        verdict = _verdict(interval)
+        verdicts.setdefault(str(comparison.claim), []).append(verdict)
+        lines.append(
+            f"* **{comparison.claim}** ({comparison.setting}): "
+            f"{_rate_cell(a.successes, a.n, a.success_interval)} vs "
+            f"{_rate_cell(b.successes, b.n, b.success_interval)}; difference "
+            f"{100 * (a.rate - b.rate):+.0f} points, 95 % CI {100 * interval[0]:+.0f} to "
+            f"{100 * interval[1]:+.0f}: {verdict} (Wilson intervals "
+            f"{'overlap' if _overlap(a, b) else 'do not overlap'}).")
+    if not verdicts:
+        return [*lines, "No comparison has episodes on both sides.", ""]
+    lines.append("")
+    for claim, found in verdicts.items():
+        if all(v == "better with the choice" for v in found):
+            summary = "survives: better in every comparison"
+        elif "worse with the choice" in found:
+            summary = "contradicted: worse in at least one comparison"
+        elif "better with the choice" in found:
+            summary = "partly: better in some comparisons, unresolved in others"
+        else:
+            summary = "not resolved at this number of trials"
+        lines.append(f"* {claim}: {summary}.")
+    return [*lines, ""]
+
+
+def _load_sentence(frame: pd.DataFrame) -> str:
+    loads = pd.to_numeric(frame.get("load_average", pd.Series(dtype=float)), errors="coerce")
+    loads = loads[np.isfinite(loads)]
+    cores = os.cpu_count() or 0
+    if not len(loads):
+        return f"Load average not recorded ({cores} cores here)."
+    return (f"Step times are wall-clock; the 1-minute load average at the end of the "
+            f"episodes was {loads.median():.1f} (median; {loads.min():.1f}-{loads.max():.1f}) "
+            f"on {cores} cores: compare configurations run under similar load only.")
+
+
+def write_trials_report(run: SuiteRun, suite: ClosedLoopSuite, trials: int,
+                        render: bool = True) -> Path:
+    """``report.md`` and figures of a randomized-trials suite (:class:`ClosedLoopSuite`):
+    the per-configuration table with Wilson intervals, the success-rate figure, the
+    success-vs-``l`` curve, the metric distributions and the claims paragraph."""
+    directory = run.directory
+    figures = directory / "figures"
+    figures.mkdir(parents=True, exist_ok=True)
+    frame = pd.DataFrame(run.rows)
+    config = load_config()
+    results = configuration_results(frame, suite)
+    drawn = [r for r in results if r.summary.n]
+    lines = [f"# c3bench closed loop: suite `{suite.name}`", "",
+             f"{len(suite.configurations)} configurations x {trials} randomized trials "
+             f"(seed {suite.seed}; {suite.duration:g} s episodes): ball start +-3 cm, cube "
+             "mass +-20 %, friction +-25 %, plant cube side U[0.28, 0.32] m, a fresh model "
+             "seed per trial for the robust controllers (docs/closed_loop.md). Success: the "
+             f"angle within {config.mpc.success_tolerance} rad of the target "
+             f"{config.mpc.target_angle} rad for the last {suite.hold_time:g} s and no "
+             "penetration deeper than 5 mm; gentle: a success that never passed the balance "
+             "angle pi/4. Rates with Wilson score 95 % intervals (E. B. Wilson, JASA 22 "
+             "(1927) 209-212). " + _load_sentence(frame), ""]
+    if run.missing:
+        lines += [f"**{run.missing} episodes missing** ({'; '.join(run.missing_reasons)}): "
+                  "run the suite again to complete them.", ""]
+    lines += ["## Outcomes per configuration", "", outcome_table(results), "",
+              "Peak angle, hold time and step time: medians over the episodes; passed "
+              "balance: share of episodes whose peak passed pi/4; load: median load average "
+              "at the end of the episodes; `a = b` in a name: one controller playing two "
+              "roles, run once.", ""]
+    if drawn:
+        plot_success_rates(drawn, figures / "closed_loop_success_rates.png")
+        plot_distributions(drawn, figures / "closed_loop_distributions.png")
+        lines += ["![success rates](figures/closed_loop_success_rates.png)", "",
+                  "*Success rate per configuration with its Wilson 95 % interval, coloured by "
+                  "group; `k/n` at the right.*", ""]
+    lines += _l_curve_lines(results, suite, figures, config.scene.cube_side)
+    if drawn:
+        lines += ["## Metric distributions", "",
+                  "![distributions](figures/closed_loop_distributions.png)", "",
+                  "*Per configuration, one point per episode and its box plot (quartiles, "
+                  "whiskers to 1.5 IQR): peak angle, hold time at the end, the plan's "
+                  "predicted next angle against the LCS rollout and against the plant "
+                  "(medians over the steps; log axis, values below 1e-6 rad drawn at 1e-6 and "
+                  "above 10 rad, a diverged plan, at 10), "
+                  "and the median control-step time (ms, log axis).*",
+                  ""]
+    lines += claims_lines(results, suite.comparisons)
+    if render and "success" in frame:
+        lines += _animation_section(directory, frame, config)
+    path = directory / "report.md"
+    atomic_write_bytes(path, ("\n".join(lines).rstrip() + "\n").encode())
+    return path

@@ -12,7 +12,11 @@ demand 1e-12 relative accuracy; this is OSQP's mixed test with ``eps_abs = eps_r
   ``max |min(x_i, x_j)| <= eps`` (0 for families without pairs); for ``lcp`` the
   complementarity violation is the relative natural residual ``||min(lam, w)|| / max(1,
   ||P lam||, ||q||)`` of ``0 <= lam perp w = P lam + q >= 0``, so success also needs
-  ``lam >= -eps`` and ``w >= -eps`` (relatively);
+  ``lam >= -eps`` and ``w >= -eps`` (relatively); ``lcp_general`` is judged by the same
+  natural residual of ``0 <= lam perp F lam + q >= 0`` (``F`` stored as is) and its primal
+  residual (``[-lam]_+``, ``[-w]_+``) only: an LCP has no objective (the family stores 0)
+  and the natural residual is its certificate on its own (a point where it is small solves
+  the LCP), so neither duals nor a verified reference are needed;
 * families whose solution has meaningful duals (:data:`DUAL_FAMILIES`: ``c3plus_qp``,
   ``c3_qp``, ``lcp``): also relative dual residual (stationarity *and* dual signs, see
   :func:`solvers.residuals.dual_residual`) and relative duality gap ``<= eps``; for
@@ -104,8 +108,9 @@ RANKED_TIME_MEANING: dict[str, str] = {
 """What :data:`RANKED_TIME_COLUMN` measures in each start mode (module docstring)."""
 DUAL_FAMILIES: tuple[Family, ...] = QP_FAMILIES
 """Families whose solutions carry meaningful duals (convex QPs and the LCP)."""
-NO_DUAL_FAMILIES: tuple[Family, ...] = COMPLEMENTARITY_FAMILIES
-"""Mixed-integer families: no dual certificate, duals neither required nor checked."""
+NO_DUAL_FAMILIES: tuple[Family, ...] = (*COMPLEMENTARITY_FAMILIES, Family.LCP_GENERAL)
+"""Families without a dual certificate (the mixed-integer families, and ``lcp_general``, whose
+certificate is the natural residual): duals neither required nor checked."""
 REFERENCE_FAMILIES: tuple[Family, ...] = COMPLEMENTARITY_FAMILIES
 """Families whose success needs a verified reference optimum (no certificate otherwise)."""
 UNVERIFIED_VERDICT = "feasible, optimality not verified (no verified reference optimum)"

@@ -9,8 +9,11 @@ it and their relative disagreement
 is recorded as the reference's own uncertainty (:mod:`bench.metrics` judges cost errors
 against ``max(tolerance, spread)``). A solve *passes* when its solver reports a solution whose
 relative primal residual and complementarity violation are at most :data:`ACCEPT_RESIDUAL`
-(for ``lcp`` the complementarity figure is the relative natural residual
-``||min(lam, P lam + q)||``, so a point with ``lam`` or ``w`` negative is refused).
+(for ``lcp`` and ``lcp_general`` the complementarity figure is the relative natural residual
+``||min(lam, F lam + q)||``, so a point with ``lam`` or ``w`` negative is refused, and an LCP
+without a solution never gets a reference). For ``lcp_general`` every solution has the same
+objective (0: the family has none), so the cross-check (the MIQP ``scip_lcp``, or PGS where
+SCIP is missing) confirms that the LCP is solvable rather than a value of ``f*``.
 
 A reference is **accepted** (``available``: the instance has a verified ``f*``) only when the
 reference solve passes and either carries a global optimality certificate
@@ -50,11 +53,16 @@ from c3bench.solvers.residuals import cost_error, residuals
 
 @dataclass(frozen=True)
 class ReferencePlan:
-    """Reference backend of a family, its cross-check, and the profile they run at."""
+    """Reference backend of a family, its cross-check, and the profile they run at.
+
+    ``fallback_check`` cross-checks instead of ``check`` when ``check`` is unavailable here
+    (its package is missing); a ``check`` that runs and fails is never replaced.
+    """
 
     solver: str
     check: str | None
     settings: str = Profile.HIGH_ACCURACY
+    fallback_check: str | None = None
 
 
 # The only solver names in bench/: the reference of each family and its cross-check.
@@ -65,6 +73,9 @@ REFERENCE_PLANS: dict[str, ReferencePlan] = {
     Family.PROJECTION: ReferencePlan("scip", "bonmin"),
     Family.MPCC: ReferencePlan("scip", "bonmin"),
     Family.QP: ReferencePlan("clarabel", "proxqp_dense"),
+    # any solution of an LCP is as good as another (the family's objective is 0): the check
+    # confirms that the LCP is solvable, by an independent method
+    Family.LCP_GENERAL: ReferencePlan("lemke", "scip_lcp", fallback_check="pgs"),
 }
 
 ACCEPT_RESIDUAL = 1e-6
@@ -200,7 +211,8 @@ def compute_reference(problem: Problem, digest: str, plan: ReferencePlan | None,
     check_ok, check_reason = _cross_check(ref, problem, plan, settings)
     if ok and check_ok:
         ref.spread = cost_error(ref.check_objective, ref.objective)
-    ref.reason = _verdict(ok, reason, plan, check_ok, check_reason, ref.spread)
+    ref.reason = _verdict(ok, reason, plan, ref.check_solver or plan.check or "-", check_ok,
+                          check_reason, ref.spread)
     ref.available = not ref.reason
     ref.solver = plan.solver if ref.available else ""
     return ref
@@ -248,23 +260,26 @@ def _cross_check(ref: Reference, problem: Problem, plan: ReferencePlan,
     if not plan.check:
         return False, "no cross-check planned"
     check = solve_isolated(plan.check, problem, settings)
+    if check.failure == Failure.UNAVAILABLE and plan.fallback_check:
+        check = solve_isolated(plan.fallback_check, problem, settings)
     check_ok, check_reason, _, _ = _accept(problem, check)
-    ref.check_solver = plan.check
+    ref.check_solver = check.solver
     ref.check_status = check.status if check_ok else check_reason
     if check_ok:
         ref.check_objective = float(problem.objective(np.asarray(check.x, dtype=float)))
     return check_ok, check_reason
 
 
-def _verdict(ok: bool, reason: str, plan: ReferencePlan, check_ok: bool, check_reason: str,
-             spread: float) -> str:
-    """``""`` when the reference is verified, else why not (the references table shows it)."""
+def _verdict(ok: bool, reason: str, plan: ReferencePlan, check_name: str, check_ok: bool,
+             check_reason: str, spread: float) -> str:
+    """``""`` when the reference is verified, else why not (the references table shows it);
+    ``check_name`` is the cross-check that ran (the plan's, or its fallback)."""
     if not ok:
         return f"{reason}; no verified f*"
     if not check_ok:
-        return f"cross-check {plan.check or '-'} failed ({check_reason}); f* not verified"
+        return f"cross-check {check_name} failed ({check_reason}); f* not verified"
     if not spread <= AGREE_COST:
-        return (f"{plan.solver} and cross-check {plan.check} disagree: cost spread "
+        return (f"{plan.solver} and cross-check {check_name} disagree: cost spread "
                 f"{spread:.2e} > {AGREE_COST:.0e}; f* not verified")
     return ""
 

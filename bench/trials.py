@@ -15,7 +15,9 @@ locked, resumable, one stored cell per episode) and are summarised by the succes
 its Wilson score 95 % interval (E. B. Wilson, "Probable inference, the law of succession, and
 statistical inference", J. Am. Stat. Assoc. 22 (1927) 209-212), the gentle-success rate,
 the medians of the physical metrics (:mod:`bench.closed_loop_metrics`) and the counts of the
-labels (:mod:`bench.closed_loop_labels`).
+labels (:mod:`bench.closed_loop_labels`) (:func:`trial_summary`). Two configurations' success
+rates are compared by Newcombe's hybrid score interval for the difference of two independent
+proportions (:func:`newcombe_interval`).
 """
 
 from __future__ import annotations
@@ -23,14 +25,16 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from c3bench.bench.closed_loop_policy import ControllerSpec
-from c3bench.bench.closed_loop_suite import Case
 from c3bench.problems.config import Config, load_config
+
+if TYPE_CHECKING:  # the suite module imports this one (its report uses the statistics)
+    from c3bench.bench.closed_loop_suite import Case
 
 Z_95 = 1.959963984540054
 """The standard normal's 97.5 % quantile: a two-sided 95 % interval."""
@@ -75,10 +79,39 @@ def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def newcombe_interval(successes_a: int, trials_a: int, successes_b: int, trials_b: int,
+                      z: float = Z_95) -> tuple[float, float]:
+    """Newcombe's hybrid score interval for the difference ``p_a - p_b`` of two independent
+    proportions (method 10 of R. G. Newcombe, "Interval estimation for the difference between
+    independent proportions: comparison of eleven methods", Stat. Med. 17 (1998) 873-890).
+
+    With ``(l_a, u_a)``, ``(l_b, u_b)`` the Wilson intervals (:func:`wilson_interval`) of
+    ``p_a = successes_a / trials_a`` and ``p_b``:
+
+    ``L = (p_a - p_b) - sqrt((p_a - l_a)^2 + (u_b - p_b)^2)``,
+    ``U = (p_a - p_b) + sqrt((u_a - p_a)^2 + (p_b - l_b)^2)``.
+
+    The difference is significant at the 95 % level when the interval excludes 0; this is
+    sharper than asking whether the two Wilson intervals overlap (overlapping 95 % intervals
+    can still differ significantly). ``(-1, 1)`` when either side has no trials.
+    """
+    if trials_a <= 0 or trials_b <= 0:
+        return -1.0, 1.0
+    low_a, high_a = wilson_interval(successes_a, trials_a, z)
+    low_b, high_b = wilson_interval(successes_b, trials_b, z)
+    p_a, p_b = successes_a / trials_a, successes_b / trials_b
+    delta = p_a - p_b
+    lower = delta - math.sqrt((p_a - low_a) ** 2 + (high_b - p_b) ** 2)
+    upper = delta + math.sqrt((high_a - p_a) ** 2 + (p_b - low_b) ** 2)
+    return max(-1.0, lower), min(1.0, upper)
+
+
 def trial_case(spec: ControllerSpec, index: int, seed: int = 0, duration: float = 3.0,
                hold_time: float = 1.0, ranges: TrialRanges | None = None,
                base: Config | None = None) -> Case:
     """Trial ``index`` of ``seed``: a closed-loop case with the perturbed plant."""
+    from c3bench.bench.closed_loop_suite import Case
+
     ranges = ranges or TrialRanges()
     scene = (base or load_config()).scene
     rng = np.random.default_rng([seed, index])
@@ -141,26 +174,80 @@ def _median(rows: Sequence[dict[str, Any]], column: str) -> float:
     return float(np.median(values)) if values.size else math.nan
 
 
-def summary_lines(rows: Sequence[dict[str, Any]], trials: int) -> list[str]:
-    """The printed summary of a trials run (``trials`` episodes asked for; a missing one
-    counts in neither numerator nor denominator, a run that failed to run as a failure)."""
+def _label(row: dict[str, Any]) -> str:
+    return str(row.get("label") or row.get("failure_label") or "error")
+
+
+@dataclass(frozen=True)
+class TrialSummary:
+    """The statistics of a set of trial episodes (one configuration).
+
+    A run that failed to run (``error`` set) counts as a failure: it is in ``n``.
+
+    Attributes
+    ----------
+    n
+        Episodes with a row.
+    successes, gentle, passed_balance
+        Episodes that succeeded, succeeded gently, passed the balance angle.
+    success_interval, gentle_interval
+        Wilson 95 % intervals of the two rates (:func:`wilson_interval`).
+    errors
+        Episodes that produced no run (``error`` set).
+    medians
+        Median over the episodes of each column of :data:`MEDIANS` (NaN values ignored;
+        NaN when none is finite).
+    labels
+        Count of each label, most common first.
+    """
+
+    n: int
+    successes: int
+    gentle: int
+    passed_balance: int
+    success_interval: tuple[float, float]
+    gentle_interval: tuple[float, float]
+    errors: int
+    medians: dict[str, float] = field(default_factory=dict)
+    labels: tuple[tuple[str, int], ...] = ()
+
+    @property
+    def rate(self) -> float:
+        """Success rate (NaN without episodes)."""
+        return self.successes / self.n if self.n else math.nan
+
+
+def trial_summary(rows: Sequence[dict[str, Any]]) -> TrialSummary:
+    """:class:`TrialSummary` of the rows of one configuration's episodes."""
     done = len(rows)
     success = sum(bool(row.get("success")) for row in rows)
     gentle = sum(bool(row.get("gentle_success")) for row in rows)
-    passed = sum(bool(row.get("passed_balance")) for row in rows)
-    lines = [rate_line("success", success, done),
-             rate_line("gentle success", gentle, done) + "  (success without passing the "
-             "balance angle)",
-             f"passed balance  {passed}/{done} (peak angle above atan(l/2 / l/2) = pi/4)"]
+    return TrialSummary(
+        n=done, successes=success, gentle=gentle,
+        passed_balance=sum(bool(row.get("passed_balance")) for row in rows),
+        success_interval=wilson_interval(success, done),
+        gentle_interval=wilson_interval(gentle, done),
+        errors=sum(bool(row.get("error")) for row in rows),
+        medians={column: _median(rows, column) for column, *_ in MEDIANS},
+        labels=tuple(Counter(_label(row) for row in rows).most_common()))
+
+
+def summary_lines(rows: Sequence[dict[str, Any]], trials: int) -> list[str]:
+    """The printed summary of a trials run (``trials`` episodes asked for; a missing one
+    counts in neither numerator nor denominator, a run that failed to run as a failure)."""
+    summary = trial_summary(rows)
+    done = summary.n
+    lines = [rate_line("success", summary.successes, done),
+             rate_line("gentle success", summary.gentle, done) + "  (success without passing "
+             "the balance angle)",
+             f"passed balance  {summary.passed_balance}/{done} (peak angle above "
+             "atan(l/2 / l/2) = pi/4)"]
     if done < trials:
         lines.append(f"missing         {trials - done} of {trials} trials (run again)")
     lines.append("medians over the trials:")
     for column, name, scale, unit in MEDIANS:
-        value = _median(rows, column)
+        value = summary.medians[column]
         shown = "-" if math.isnan(value) else f"{scale * value:.3g}"
         lines.append(f"  {name:<24} {shown} {unit}")
-    labels = Counter(str(row.get("label") or row.get("failure_label") or "error")
-                     for row in rows)
-    lines.append("labels: " + ", ".join(f"{label} {count}"
-                                        for label, count in labels.most_common()))
+    lines.append("labels: " + ", ".join(f"{label} {count}" for label, count in summary.labels))
     return lines

@@ -17,12 +17,12 @@ typed only for the type checker).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from c3bench.problems.lcs import LCS
+from c3bench.problems.lcs import CONTACT_MODELS, LCS
 from c3bench.problems.mpc import MPC, HorizonLayout
 from c3bench.problems.names import (
     QP_VARIANTS,
@@ -32,6 +32,10 @@ from c3bench.problems.names import (
     Block,
     QPVariant,
 )
+
+SCENE_VARIANTS: tuple[str, ...] = ("planar", "spatial")
+"""Scene variants a suite may use: :data:`c3bench.problems.scene.VARIANTS`, repeated here
+because this module must not import the scene (MuJoCo)."""
 
 if TYPE_CHECKING:  # type only: importing the scene at run time would load MuJoCo
     from c3bench.problems.scene import Scene
@@ -101,6 +105,17 @@ class SuiteSpec:
     qp_variants
         Variants of the QP-step families (:class:`~c3bench.problems.names.QPVariant`),
         ``bounded`` first.
+    extra_scenes
+        Scene variants (``spatial``) whose pushes, states and instances are generated too, in
+        addition to ``variant``'s, by the same rules; their tags end ``_<scene>``
+        (``s012t0_spatial``) and their metadata says the scene.
+    extra_scene_trajectories
+        ``0``: the extra scenes run every push of ``trajectories``; ``k > 0``: the first ``k``
+        only (a spatial QP step is about six times the bytes of a planar one).
+    lcp_general_models
+        Contact models (:data:`c3bench.problems.lcs.CONTACT_MODELS`) whose LCS, linearised at
+        every state, gives an ``lcp_general`` instance of the step's LCP
+        (:func:`c3bench.problems.families.lcp_general_from_lcs`); ``()``: none.
     """
 
     name: str
@@ -120,19 +135,39 @@ class SuiteSpec:
     mpcc_per_trajectory: int = 0
     mpcc_trajectories: int = 0
     qp_variants: tuple[QPVariant, ...] = QP_VARIANTS
+    lcp_general_models: tuple[str, ...] = ()
+    extra_scenes: tuple[str, ...] = ()
+    extra_scene_trajectories: int = 0
 
     def __post_init__(self) -> None:
         if self.n_states < 1 or not self.trajectories:
             raise ValueError("a suite needs n_states >= 1 and at least one trajectory")
         for label in ("contact_change_states", "iterations_per_state",
                       "projection_iterations_per_state", "mpcc_per_trajectory",
-                      "mpcc_trajectories"):
+                      "mpcc_trajectories", "extra_scene_trajectories"):
             if getattr(self, label) < 0:
                 raise ValueError(f"{label} must be >= 0, got {getattr(self, label)}")
         unknown = [v for v in self.qp_variants if v not in tuple(QPVariant)]
         if unknown or not self.qp_variants:
             raise ValueError(f"qp_variants must be a non-empty subset of "
                              f"{[str(v) for v in QPVariant]}, got {list(self.qp_variants)}")
+        bad = [m for m in self.lcp_general_models if m not in CONTACT_MODELS]
+        if bad:
+            raise ValueError(f"lcp_general_models must be among {CONTACT_MODELS}, got {bad}")
+        if self.variant in self.extra_scenes or len(set(self.extra_scenes)) < len(
+                self.extra_scenes) or not set(self.extra_scenes) <= set(SCENE_VARIANTS):
+            raise ValueError(f"extra_scenes must be distinct scenes of {SCENE_VARIANTS} other "
+                             f"than variant {self.variant!r}, got {list(self.extra_scenes)}")
+
+    def to_json(self) -> dict[str, Any]:
+        """The spec as the manifest stores it: ``dataclasses.asdict``, less the fields added
+        after generator version 2 (:data:`ADDED_FIELDS`) while they keep their defaults, so
+        that a suite which does not use them keeps its manifest byte for byte."""
+        out = asdict(self)
+        for name, default in ADDED_FIELDS.items():
+            if out[name] == default:
+                del out[name]
+        return out
 
     def iterations_at(self, position: int, projection: bool = False) -> tuple[int, ...]:
         """ADMM iterations captured at the ``position``-th state of the suite (counted over
@@ -145,6 +180,11 @@ class SuiteSpec:
         return tuple(sorted({pool[(position * per_state + r) % len(pool)]
                              for r in range(per_state)}))
 
+
+ADDED_FIELDS: dict[str, Any] = {"lcp_general_models": (), "extra_scenes": (),
+                                "extra_scene_trajectories": 0}
+"""Fields of :class:`SuiteSpec` added after generator version 2, with their defaults
+(:meth:`SuiteSpec.to_json` leaves them out of the manifest while they are at them)."""
 
 _PUSHES: tuple[Trajectory, ...] = (
     Trajectory(None, 0.75),
@@ -170,7 +210,9 @@ SUITES: dict[str, SuiteSpec] = {
                          contact_change_states=3),
     "full": SuiteSpec("full", n_states=8, admm_iterations=tuple(range(10)),
                       projection_iterations=tuple(range(10)), projection_steps=(0, 3, -1),
-                      trajectories=_PUSHES, contact_change_states=3),
+                      trajectories=_PUSHES, contact_change_states=3,
+                      lcp_general_models=("stewart_trinkle",), extra_scenes=("spatial",),
+                      extra_scene_trajectories=2),
 }
 """The packaged suites by name: ``quick`` 6 states from 2 pushes (two QP-step iterations per
 state, (0, 3) or (6, 9) in turn, so a warm cell has its predecessor; projections at iteration 0
@@ -178,7 +220,8 @@ or 3; one ``mpcc``, on the first push: the late projections,
 ``rho_lam`` of 12800 and more, make the MINLP reference check run into its time limit and
 belong to ``default``), ``default`` 42 states from 6 pushes (QP steps at iterations 0, 3, 6, 8,
 9 and projections at 0, 3, 6, 9 at each state, 3 states per push at contact changes),
-``full`` 64 states from 8 pushes."""
+``full`` 64 states from 8 pushes of the planar scene and 16 from the first 2 pushes run in the
+spatial scene, with an ``lcp_general`` instance of the Stewart-Trinkle LCS at each state."""
 
 
 def reference_rho(iteration: int) -> dict[str, float]:

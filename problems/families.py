@@ -1,4 +1,4 @@
-"""Builders of the five subproblem families (docs/families.md).
+"""Builders of the subproblem families (docs/families.md).
 
 All return a :class:`problems.instance.Problem` in the form
 ``min 1/2 z^T P z + q^T z + offset s.t. A z = b, G z <= h, lb <= z <= ub``, complementarity
@@ -21,6 +21,10 @@ pairs ``0 <= z_i perp z_j >= 0``.
   bounds as the bounded QP step.
 * ``lcp``: ``min 1/2 lam^T F lam + q^T lam`` s.t. ``lam >= 0`` with ``q = E x + H u + c``
   (its KKT conditions are the LCP because ``F`` is symmetric PSD for Anitescu).
+* ``lcp_general``: ``0 <= lam perp w = F lam + q >= 0`` for any square ``F`` (not symmetric
+  for Stewart-Trinkle), ``F`` stored as is in ``data["F"]`` and ``q`` in ``h``; the QP
+  fields state the LCP's feasible set ``-F lam <= q``, ``lam >= 0`` with a zero objective
+  (:func:`lcp_general`): an LCP has no objective, and no QP backend takes the family.
 
 Weights: ``G_k = diag(rho_x I, rho_lam I, rho_u I, rho_eta I)``, keyed by
 :class:`c3bench.problems.names.Block` (the blocks of :data:`c3bench.problems.names.BLOCKS`).
@@ -36,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from c3bench.problems.errors import InputError
 from c3bench.problems.instance import Problem
 from c3bench.problems.lcs import LCS
 from c3bench.problems.limits import Limits
@@ -341,3 +346,100 @@ def lcp(name: str, lcs: LCS, x: np.ndarray, u: np.ndarray,
     return Problem(name=name, family=Family.LCP, P=lcs.F.copy(), q=offset_q,
                    lb=np.zeros(lcs.nlam), lcs=lcs, data={"x": x, "u": u},
                    meta=dict(meta or {}))
+
+
+def _check_lcp_data(F: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``F`` (n x n) and ``q`` (n) as finite float arrays; :class:`InputError` naming the fault."""
+    try:
+        F = np.array(F, dtype=np.float64)
+        q = np.array(q, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise InputError(f"F and q must be numeric: {error}") from error
+    if q.ndim != 1 or q.size == 0:
+        raise InputError(f"q must be a non-empty vector, got shape {q.shape}")
+    if F.shape != (q.size, q.size):
+        raise InputError(f"F must be square with the size of q, ({q.size}, {q.size}); got "
+                         f"{F.shape}")
+    for label, value in (("F", F), ("q", q)):
+        if not np.all(np.isfinite(value)):
+            raise InputError(f"{label} has non-finite entries")
+    return F, q
+
+
+def lcp_general(name: str, F: np.ndarray, q: np.ndarray, *, lcs: LCS | None = None,
+                data: Mapping[str, np.ndarray] | None = None,
+                meta: dict[str, Any] | None = None) -> Problem:
+    """An LCP ``0 <= lam perp w = F lam + q >= 0`` with any square ``F``, stored as is.
+
+    Storage (:func:`c3bench.problems.instance.lcp_data` reads ``F`` and ``q`` back):
+    ``data["F"] = F`` unchanged, and the QP fields state the LCP's feasible set with a zero
+    objective::
+
+        min  0   s.t.   -F lam <= q   (w >= 0),   lam >= 0,
+
+    i.e. ``P = 0``, ``q = 0`` (the instance's ``q`` field; the LCP's ``q`` is ``h``),
+    ``G = -F``, ``h = q``, ``lb = 0``. An LCP has no objective: any solution is as good as
+    another (the solution need not be unique), so the family's objective is 0 and its
+    certificate is the natural residual ``||min(lam, F lam + q)||`` (Cottle, Pang and Stone
+    1992); the primal residual of the QP fields measures ``[-lam]_+`` and ``[-w]_+``. ``P = 0``
+    keeps the instance contract (``P`` symmetric positive semi-definite); the family is still
+    no convex QP (complementarity is not in the QP fields) and no QP backend takes it.
+
+    Parameters
+    ----------
+    name
+        Instance name.
+    F, q
+        The LCP's matrix (n x n) and vector (n); finite.
+    lcs
+        The LCS the LCP comes from (``None`` for an LCP brought on its own).
+    data
+        Further arrays to store (``"F"`` is reserved).
+    meta
+        Metadata (none is required without an LCS: ``lcp_general`` is a generic family).
+
+    Raises
+    ------
+    InputError
+        ``F`` not square of ``q``'s size, non-finite entries, or ``data`` holding ``"F"``.
+
+    References
+    ----------
+    R. W. Cottle, J.-S. Pang and R. E. Stone, *The Linear Complementarity Problem*, Academic
+    Press, 1992.
+    """
+    F, q = _check_lcp_data(F, q)
+    extra = {key: np.asarray(value) for key, value in (data or {}).items()}
+    if "F" in extra:
+        raise InputError("data['F'] is reserved for the LCP matrix (pass it as F)")
+    n = q.size
+    return Problem(name=name, family=Family.LCP_GENERAL, P=np.zeros((n, n)), q=np.zeros(n),
+                   G=-F, h=q.copy(), lb=np.zeros(n), lcs=lcs, data={"F": F, **extra},
+                   meta=dict(meta or {}))
+
+
+def lcp_general_from_lcs(name: str, lcs: LCS, x: np.ndarray, u: np.ndarray,
+                         meta: dict[str, Any] | None = None) -> Problem:
+    """The forward-simulation LCP of one LCS step, ``F = lcs.F``, ``q = E x + H u + c``
+    (:meth:`LCS.lcp_offset`), for any contact model (Stewart-Trinkle's ``F`` is not
+    symmetric: Stewart and Trinkle 1996). ``data`` gains ``x`` and ``u``; ``meta`` the
+    ``contact_model``.
+
+    References
+    ----------
+    D. E. Stewart and J. C. Trinkle, "An implicit time-stepping scheme for rigid body dynamics
+    with inelastic collisions and Coulomb friction", International Journal for Numerical
+    Methods in Engineering 39(15), 2673-2691, 1996.
+    """
+    try:
+        x = _check_x0(x, lcs)
+    except ValueError as error:
+        raise InputError(str(error)) from error
+    u = np.asarray(u, dtype=float)
+    if u.shape != (lcs.nu,) or not np.all(np.isfinite(u)):
+        raise InputError(f"u must be a finite vector of shape ({lcs.nu},)")
+    info = dict(meta or {})
+    info.setdefault("contact_model", lcs.contact_model)
+    return lcp_general(name, lcs.F, lcs.lcp_offset(x, u), lcs=lcs, data={"x": x, "u": u},
+                       meta=info)
+

@@ -181,6 +181,8 @@ class Problem:
             raise ValueError(f"{self.name}: objective_offset must be finite")
         for key, value in self.data.items():
             self.data[key] = np.asarray(value)
+        if self.family == Family.LCP_GENERAL:
+            _check_lcp_general(self)
 
     # --- evaluation -----------------------------------------------------------------------
     def objective(self, z: np.ndarray) -> float:
@@ -193,6 +195,46 @@ class Problem:
         return {"name": self.name, "family": self.family, "variables": self.n,
                 "equality_rows": self.n_eq, "inequality_rows": self.n_ineq,
                 "bounded_variables": self.n_bounded, "complementarity_pairs": self.n_pairs}
+
+
+def lcp_data(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
+    """``(F, q)`` of the LCP ``0 <= lam perp F lam + q >= 0`` an ``lcp`` or ``lcp_general``
+    instance states: ``(data["F"], h)`` for ``lcp_general`` (``F`` stored as is,
+    :func:`c3bench.problems.families.lcp_general`), ``(P, q)`` for ``lcp`` (whose ``F`` is
+    symmetric and is the QP's Hessian)."""
+    if problem.family == Family.LCP_GENERAL:
+        assert problem.h is not None  # checked by Problem.validate
+        return problem.data["F"], problem.h
+    return problem.P, problem.q
+
+
+def _check_lcp_general(problem: Problem) -> None:
+    """An ``lcp_general`` instance is exactly the form of
+    :func:`c3bench.problems.families.lcp_general`: ``data["F"]`` square of size ``n`` and
+    finite, ``P = 0``, ``q = 0``, ``G = -F``, ``h`` (the LCP's ``q``) given, ``lb = 0``,
+    nothing else; ``ValueError`` naming the field at fault."""
+    n, name = problem.n, problem.name
+    if "F" not in problem.data:
+        raise ValueError(f"{name}: an lcp_general instance stores its matrix as data['F']; "
+                         "build it with c3bench.problems.families.lcp_general")
+    F = _as_float("data['F']", problem.data["F"], shape=(n, n))
+    if not np.all(np.isfinite(F)):
+        raise ValueError(f"{name}: data['F'] has non-finite entries")
+    problem.data["F"] = F
+    expected = (("P", problem.P, np.zeros((n, n))), ("q", problem.q, np.zeros(n)),
+                ("G", problem.G, -F), ("lb", problem.lb, np.zeros(n)))
+    for label, value, form in expected:
+        if value is None or value.shape != form.shape or not np.array_equal(value, form):
+            raise ValueError(f"{name}: an lcp_general instance needs {label} of its stored "
+                             "form (P = 0, q = 0, G = -F, h = the LCP's q, lb = 0; "
+                             "c3bench.problems.families.lcp_general)")
+    extra = [label for label, value in (("A", problem.A), ("complementarity",
+                                                          problem.complementarity))
+             if value is not None]
+    if problem.ub is not None and np.any(np.isfinite(problem.ub)):
+        extra.append("ub")
+    if extra:
+        raise ValueError(f"{name}: an lcp_general instance takes no {', '.join(extra)}")
 
 
 def _as_float(name: str, value: Any, ndim: int | None = None,
@@ -388,7 +430,8 @@ def load_problem(path: str | Path) -> Problem:
 def required_meta(family: str, has_lcs: bool) -> tuple[str, ...]:
     """The metadata keys an instance must carry: :data:`REQUIRED_META` where it describes the
     cube (every instance with an LCS table, and every instance of a cube-only family), none
-    for an instance of a generic family (``qp``, ``mpcc``, ``lcp``) brought without an LCS."""
+    for an instance of a generic family (``qp``, ``mpcc``, ``lcp``, ``lcp_general``) brought
+    without an LCS."""
     return () if family in GENERIC_FAMILIES and not has_lcs else REQUIRED_META
 
 

@@ -16,7 +16,12 @@ A suite is generated in three steps:
    (``model_l``, the reference study's shrunk 0.29 cube) linearised at that state; the QP steps
    in both variants (``bounded`` with the cube's limits,
    :func:`c3bench.problems.limits.cube_limits`, and ``equality``), the ``mpcc`` with the same
-   limits.
+   limits; where the suite asks for it (``lcp_general_models``: the ``full`` suite), the
+   step's LCP of the model linearised with the Stewart-Trinkle contact model, an
+   ``lcp_general`` instance (its ``F`` is not symmetric).
+4. **Extra scenes** (``extra_scenes``: the ``full`` suite's spatial scene): steps 1 to 3 again
+   in that scene, for the first ``extra_scene_trajectories`` pushes, tags ending
+   ``_<scene>``; the manifest's states then say their scene.
 
 A suite is written into a hidden sibling folder and swapped in whole when complete, so a
 directory never mixes instances of two generations and an interrupted generation leaves the
@@ -42,7 +47,7 @@ import shutil
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import mujoco
 import numpy as np
@@ -65,6 +70,7 @@ from c3bench.problems.instance import (
     atomic_write_bytes,
     save_problem,
 )
+from c3bench.problems.lcs import ContactModel
 from c3bench.problems.limits import Limits, cube_limits
 from c3bench.problems.linearize import contact_frames, linearize
 from c3bench.problems.mpc import MPC, HorizonLayout, with_limits
@@ -240,11 +246,12 @@ def build_state_instances(context: CaptureContext, capture: Capture) -> list[Pro
     QP steps at the state's ADMM iterations (:meth:`SuiteSpec.iterations_at`) in every variant
     of ``spec.qp_variants``; projections at its projection iterations and
     ``spec.projection_steps``; the ``mpcc`` (bounded by :func:`qp_limits`) when
-    ``context.with_mpcc``; the ``lcp``.
+    ``context.with_mpcc``; the ``lcp``; the ``lcp_general`` instances of
+    ``spec.lcp_general_models`` (:func:`general_lcps`).
     """
     spec, lcs, mpc = context.spec, context.lcs, context.mpc
     layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, mpc.horizon)
-    tag = f"s{context.state_index:03d}t{context.trajectory}"
+    tag = state_tag(spec, context.scene.variant, context.state_index, context.trajectory)
     qp_iterations = spec.iterations_at(context.position)
     projection_iterations = spec.iterations_at(context.position, projection=True)
     problems: list[Problem] = []
@@ -273,7 +280,24 @@ def build_state_instances(context: CaptureContext, capture: Capture) -> list[Pro
         problems.append(families.mpcc(f"{Family.MPCC}-{tag}", lcs, mpc, context.x0, meta=meta,
                                       limits=qp_limits(mpc)))
     problems.append(families.lcp(f"{Family.LCP}-{tag}", lcs, context.x0, context.u_prev, meta=meta))
+    problems.extend(general_lcps(context, tag))
     return problems
+
+
+def general_lcps(context: CaptureContext, tag: str) -> list[Problem]:
+    """The ``lcp_general`` instances of one state: for each contact model of
+    ``spec.lcp_general_models``, the step's LCP of the controller's model linearised with it at
+    ``(x0, u_prev)`` (:func:`c3bench.problems.families.lcp_general_from_lcs`), named
+    ``lcp_general-<model>-<tag>`` (``-`` for ``_`` in the model)."""
+    out = []
+    for model in context.spec.lcp_general_models:
+        lcs = linearize(context.scene, context.x0, context.u_prev, context.lcs.dt,
+                        cast(ContactModel, model))
+        meta = dict(context.base_meta, contact_model=model)
+        label = model.replace("_", "-")
+        out.append(families.lcp_general_from_lcs(f"{Family.LCP_GENERAL}-{label}-{tag}", lcs,
+                                                 context.x0, context.u_prev, meta=meta))
+    return out
 
 
 def generate_suite(
@@ -335,72 +359,141 @@ def out_of_date(spec: SuiteSpec, manifest: dict[str, Any]) -> str:
     stored = manifest.get("generator_version")
     if stored != GENERATOR_VERSION:
         return f"written by suite generator version {stored} (now {GENERATOR_VERSION})"
-    if json.loads(json.dumps(manifest.get("suite"))) != json.loads(json.dumps(asdict(spec))):
+    if json.loads(json.dumps(manifest.get("suite"))) != json.loads(json.dumps(spec.to_json())):
         return f"the definition of suite {spec.name!r} changed"
     return ""
 
 
-def _write_suite(spec: SuiteSpec, out: Path, cfg: Config, capture: Capture,
-                 progress: bool) -> list[Path]:
-    """Write every instance and the manifest of ``spec`` into ``out``."""
-    model_scene = build_scene(l=spec.model_l, variant=check_variant(spec.variant), config=cfg)
-    mpc = with_limits(build_mpc(model_scene, cfg.mpc), cube_limits(model_scene))
-    states: list[tuple[int, Trajectory, PushRecord, int, str]] = []
-    for t, trajectory in enumerate(spec.trajectories):
-        record = scripted_push(cfg, spec.duration, spec.variant, trajectory.ball_start,
-                               trajectory.push_height)
+def state_tag(spec: SuiteSpec, scene: str, state_index: int, trajectory: int) -> str:
+    """The tag of a state in instance names: ``s<step>t<push>``, plus ``_<scene>`` for a
+    state of one of ``spec.extra_scenes``."""
+    tag = f"s{state_index:03d}t{trajectory}"
+    return tag if scene == spec.variant else f"{tag}_{scene}"
+
+
+@dataclass
+class _State:
+    """One sampled state: its scene, push and step, and why it was chosen."""
+
+    scene: str
+    trajectory: int
+    push: Trajectory
+    record: PushRecord
+    index: int
+    reason: str
+
+
+@dataclass
+class _Tally:
+    """What a generation wrote: paths, counts by family and by family/variant, the states."""
+
+    written: list[Path]
+    counts: dict[str, int]
+    variant_counts: dict[str, int]
+    chosen: list[dict[str, Any]]
+
+    def add(self, problem: Problem, path: Path) -> None:
+        """Count one written instance."""
+        self.written.append(path)
+        self.counts[problem.family] = self.counts.get(problem.family, 0) + 1
+        key = f"{problem.family}/{problem.meta.get('variant', '')}".rstrip("/")
+        self.variant_counts[key] = self.variant_counts.get(key, 0) + 1
+
+
+def _sample_states(spec: SuiteSpec, cfg: Config, scene: str) -> list[_State]:
+    """The states of the pushes of ``spec`` run in ``scene`` (:func:`choose_states`): every
+    push in ``spec.variant``'s scene, the first ``spec.extra_scene_trajectories`` (``0``:
+    all) in an extra scene."""
+    pushes = spec.trajectories
+    if scene != spec.variant and spec.extra_scene_trajectories:
+        pushes = pushes[:spec.extra_scene_trajectories]
+    states: list[_State] = []
+    for t, push in enumerate(pushes):
+        record = scripted_push(cfg, spec.duration, scene, push.ball_start, push.push_height)
         picks = choose_states(record, spec.n_states, spec.contact_band,
                               spec.contact_change_states)
-        states.extend((t, trajectory, record, index, reason) for index, reason in picks)
-    written: list[Path] = []
-    counts: dict[str, int] = {}
-    variant_counts: dict[str, int] = {}
-    chosen: list[dict[str, Any]] = []
-    mpccs: dict[int, int] = {}
+        states.extend(_State(scene, t, push, record, index, reason) for index, reason in picks)
+    return states
+
+
+def _write_suite(spec: SuiteSpec, out: Path, cfg: Config, capture: Capture,
+                 progress: bool) -> list[Path]:
+    """Write every instance and the manifest of ``spec`` into ``out``: the states of
+    ``spec.variant``'s scene, then those of each of ``spec.extra_scenes``."""
+    scenes = (spec.variant, *spec.extra_scenes)
+    models = {scene: build_scene(l=spec.model_l, variant=check_variant(scene), config=cfg)
+              for scene in scenes}
+    mpcs = {scene: with_limits(build_mpc(model, cfg.mpc), cube_limits(model))
+            for scene, model in models.items()}
+    states = [state for scene in scenes for state in _sample_states(spec, cfg, scene)]
+    tally = _Tally([], {}, {}, [])
+    mpccs: dict[tuple[str, int], int] = {}
     iterator: Iterable[int] = range(len(states))
     if progress:
         from tqdm import tqdm
 
         iterator = tqdm(iterator, desc=f"generating {spec.name}", unit="state")
     for position in iterator:
-        t, trajectory, record, index, reason = states[position]
-        x0, u_prev = record.states[index], record.inputs[max(index - 1, 0)]
-        lcs = linearize(model_scene, x0, u_prev, cfg.mpc.dt)
-        how = dict(_trajectory_json(t, trajectory, cfg), state_index=index,
-                   time=round(index * cfg.mpc.dt, 10), reason=reason,
-                   tag=f"s{index:03d}t{t}")
-        chosen.append(how)
-        base_meta: dict[str, Any] = {
-            "suite": spec.name, "scene": spec.variant, "l": spec.model_l,
-            "l_plant": cfg.scene.cube_side, "dt": cfg.mpc.dt, "T": cfg.mpc.horizon,
-            "state_index": index, "time": how["time"], "trajectory": t,
-            "ball_start": how["ball_start"], "state_reason": reason,
-            "seed": spec.seed, "precision": Precision.FLOAT64, "contact_model": lcs.contact_model,
-            "target_angle": cfg.mpc.target_angle,
-        }
-        with_mpcc = (spec.mpcc_per_trajectory == 0 or mpccs.get(t, 0) < spec.mpcc_per_trajectory) \
-            and (spec.mpcc_trajectories == 0 or t < spec.mpcc_trajectories)
-        mpccs[t] = mpccs.get(t, 0) + int(with_mpcc)
-        context = CaptureContext(spec, index, x0, u_prev, lcs, mpc, model_scene,
-                                 np.random.default_rng([spec.seed, t, index]), base_meta,
-                                 position=position, trajectory=t, with_mpcc=with_mpcc)
+        state = states[position]
+        key = (state.scene, state.trajectory)
+        with_mpcc = (spec.mpcc_per_trajectory == 0
+                     or mpccs.get(key, 0) < spec.mpcc_per_trajectory) \
+            and (spec.mpcc_trajectories == 0 or state.trajectory < spec.mpcc_trajectories)
+        mpccs[key] = mpccs.get(key, 0) + int(with_mpcc)
+        context = _context(spec, cfg, state, models[state.scene], mpcs[state.scene], position,
+                           with_mpcc, tally)
         for problem in build_state_instances(context, capture):
-            written.append(save_problem(problem, out / problem.family))
-            counts[problem.family] = counts.get(problem.family, 0) + 1
-            key = f"{problem.family}/{problem.meta.get('variant', '')}".rstrip("/")
-            variant_counts[key] = variant_counts.get(key, 0) + 1
-    assert mpc.limits is not None
-    manifest = {"generator_version": GENERATOR_VERSION, "suite": asdict(spec), "states": chosen,
-                "counts": dict(sorted(counts.items())),
-                "counts_by_variant": dict(sorted(variant_counts.items())),
+            tally.add(problem, save_problem(problem, out / problem.family))
+    _write_manifest(spec, cfg, out, tally, mpcs)
+    return tally.written
+
+
+def _context(spec: SuiteSpec, cfg: Config, state: _State, model: Scene, mpc: MPC,
+             position: int, with_mpcc: bool, tally: _Tally) -> CaptureContext:
+    """The capture context of one state (its LCS linearised here); the state's manifest entry
+    is appended to ``tally.chosen``."""
+    index, t = state.index, state.trajectory
+    x0, u_prev = state.record.states[index], state.record.inputs[max(index - 1, 0)]
+    lcs = linearize(model, x0, u_prev, cfg.mpc.dt)
+    how = dict(_trajectory_json(t, state.push, cfg), state_index=index,
+               time=round(index * cfg.mpc.dt, 10), reason=state.reason,
+               tag=state_tag(spec, state.scene, index, t))
+    if spec.extra_scenes:
+        how["scene"] = state.scene
+    tally.chosen.append(how)
+    base_meta: dict[str, Any] = {
+        "suite": spec.name, "scene": state.scene, "l": spec.model_l,
+        "l_plant": cfg.scene.cube_side, "dt": cfg.mpc.dt, "T": cfg.mpc.horizon,
+        "state_index": index, "time": how["time"], "trajectory": t,
+        "ball_start": how["ball_start"], "state_reason": state.reason,
+        "seed": spec.seed, "precision": Precision.FLOAT64, "contact_model": lcs.contact_model,
+        "target_angle": cfg.mpc.target_angle,
+    }
+    seed = [spec.seed, t, index] if state.scene == spec.variant else \
+        [spec.seed, t, index, 1 + spec.extra_scenes.index(state.scene)]
+    return CaptureContext(spec, index, x0, u_prev, lcs, mpc, model,
+                          np.random.default_rng(seed), base_meta, position=position,
+                          trajectory=t, with_mpcc=with_mpcc)
+
+
+def _write_manifest(spec: SuiteSpec, cfg: Config, out: Path, tally: _Tally,
+                    mpcs: dict[str, MPC]) -> None:
+    """``manifest.json``: the suite, states, counts, pushes, limits and constants (with
+    ``extra_scenes``, the limits of every scene under ``limits_by_scene`` too)."""
+    limits = {scene: mpc.limits.to_json() for scene, mpc in mpcs.items()
+              if mpc.limits is not None}
+    manifest = {"generator_version": GENERATOR_VERSION, "suite": spec.to_json(),
+                "states": tally.chosen, "counts": dict(sorted(tally.counts.items())),
+                "counts_by_variant": dict(sorted(tally.variant_counts.items())),
                 "trajectories": [_trajectory_json(t, trajectory, cfg)
                                  for t, trajectory in enumerate(spec.trajectories)],
-                "limits": mpc.limits.to_json(),
+                "limits": limits[spec.variant],
                 "config": {"scene": asdict(cfg.scene), "mpc": asdict(cfg.mpc),
                            "limits": asdict(cfg.limits)}}
+    if spec.extra_scenes:
+        manifest["limits_by_scene"] = limits
     atomic_write_bytes(out / MANIFEST,
                        (json.dumps(manifest, indent=2, sort_keys=True) + "\n").encode())
-    return written
 
 
 # --- replacing a suite as a whole ----------------------------------------------------------------

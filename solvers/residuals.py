@@ -13,9 +13,10 @@ Definitions follow qpsolvers' ``Solution`` (infinity norms), for
 * duality gap ``|x^T P x + q^T x + b^T y + h^T z + lb^T [z_box]_- + ub^T [z_box]_+|``
   (infinite bounds skipped);
 * complementarity violation ``max_pairs |min(x_i, x_j)|`` (the natural-map residual of
-  ``0 <= x_i perp x_j >= 0``); for the ``lcp`` family, whose complementarity is
-  ``0 <= lam perp w = P lam + q >= 0`` (no pairs), it is the relative natural residual
-  ``||min(lam, w)||_inf / max(1, ||P lam||_inf, ||q||_inf)`` (:func:`lcp_residual`), which
+  ``0 <= x_i perp x_j >= 0``); for the LCP families (:data:`LCP_FAMILIES`), whose
+  complementarity is ``0 <= lam perp w = F lam + q >= 0`` (no pairs; ``(F, q) = (P, q)`` for
+  ``lcp``, ``(data["F"], h)`` for ``lcp_general``), it is the relative natural residual
+  ``||min(lam, w)||_inf / max(1, ||F lam||_inf, ||q||_inf)`` (:func:`lcp_residual`), which
   also bounds ``[-lam]_+`` and ``[-w]_+`` (``|min(a, b)| >= max(-a, -b)``);
 * cost error ``|f(x) - f*| / max(1, |f*|)`` against a reference optimum ``f*``.
 
@@ -35,8 +36,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from c3bench.problems.instance import Problem
+from c3bench.problems.instance import Problem, lcp_data
 from c3bench.problems.names import Family
+
+LCP_FAMILIES: tuple[Family, ...] = (Family.LCP, Family.LCP_GENERAL)
+"""Families whose complementarity is ``0 <= lam perp F lam + q >= 0`` (no pairs)."""
 
 
 def _inf_norm(vector: np.ndarray) -> float:
@@ -144,9 +148,11 @@ def relative_natural_residual(M: np.ndarray, q: np.ndarray, z: np.ndarray) -> fl
 
 
 def lcp_residual(problem: Problem, x: np.ndarray) -> float:
-    """Relative natural residual of the ``lcp`` instance ``LCP(P, q)``
-    (:func:`relative_natural_residual`)."""
-    return relative_natural_residual(problem.P, problem.q, x)
+    """Relative natural residual of the ``lcp`` / ``lcp_general`` instance ``LCP(F, q)``
+    (:func:`relative_natural_residual`; ``F`` and ``q`` from
+    :func:`c3bench.problems.instance.lcp_data`)."""
+    F, q = lcp_data(problem)
+    return relative_natural_residual(F, q, x)
 
 
 def cost_error(objective: float, reference: float) -> float:
@@ -205,7 +211,8 @@ def residuals(problem: Problem, x: np.ndarray, y: np.ndarray | None = None,
               z: np.ndarray | None = None, z_box: np.ndarray | None = None) -> Residuals:
     """Primal and dual residuals, duality gap and complementarity violation at once.
 
-    The complementarity figure of an ``lcp`` instance is :func:`lcp_residual` (``lam perp w``).
+    The complementarity figure of an ``lcp`` or ``lcp_general`` instance is
+    :func:`lcp_residual` (``lam perp w``).
 
     Dual residual and gap are ``nan`` when the solver returned no duals for a problem that has
     constraints (they cannot be computed, and are never counted as zero).
@@ -220,7 +227,7 @@ def residuals(problem: Problem, x: np.ndarray, y: np.ndarray | None = None,
     primal_scale, dual_scale, gap_scale = _scales(problem, x, y, z, z_box)
     return Residuals(
         primal=primal, dual=dual, gap=gap,
-        complementarity=lcp_residual(problem, x) if problem.family == Family.LCP
+        complementarity=lcp_residual(problem, x) if problem.family in LCP_FAMILIES
         else complementarity_violation(problem, x),
         primal_relative=primal / max(1.0, primal_scale),
         dual_relative=dual / max(1.0, dual_scale),

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from c3bench.problems import families
 from c3bench.problems.importers import QPSOLVERS_KEYS, qp_problem
 from c3bench.problems.instance import Problem, load_instances
 from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, QP_FAMILIES, Failure, Family
@@ -61,6 +62,9 @@ def candidates(tmp_path_factory: pytest.TempPathFactory,
     out[Family.MPCC] = [small_mpccs["h1-0"], *out[Family.MPCC]]
     out[Family.QP] = [qp_problem(f"qp_{p.name}", {k: getattr(p, k) for k in QPSOLVERS_KEYS},
                                  "test") for p in out[Family.C3PLUS_QP][:1]]
+    out[Family.LCP_GENERAL] = [families.lcp_general_from_lcs(
+        f"lcp_general_{p.name}", p.lcs, p.data["x"], p.data["u"])
+        for p in out[Family.LCP][:1] if p.lcs is not None]
     return out
 
 
@@ -119,7 +123,7 @@ def test_backend_contract(name: str, family: Family,
             assert figures.dual_relative <= KKT_LIMIT, (problem.name, figures)
             assert figures.gap_relative <= KKT_LIMIT, (problem.name, figures)
     else:
-        assert family in COMPLEMENTARITY_FAMILIES
+        assert family in (*COMPLEMENTARITY_FAMILIES, Family.LCP_GENERAL)
         assert figures.primal_relative <= COMPLEMENTARITY_LIMIT, (problem.name, figures)
         assert figures.complementarity <= COMPLEMENTARITY_LIMIT, (problem.name, figures)
 

@@ -1,5 +1,7 @@
-"""Randomized closed-loop trials: the Wilson interval, the randomization and a short end-to-end
-run of ``c3bench closed-loop-trials`` through the process pool (stored, then resumed)."""
+"""Randomized closed-loop trials: the Wilson interval, Newcombe's interval for a difference of
+rates (against his paper's table), the per-configuration summary, the randomization and a short
+end-to-end run of ``c3bench closed-loop-trials`` through the process pool (stored, then
+resumed)."""
 
 from __future__ import annotations
 
@@ -13,9 +15,11 @@ from c3bench.bench.cli import main
 from c3bench.bench.closed_loop import ControllerSpec
 from c3bench.bench.trials import (
     TrialRanges,
+    newcombe_interval,
     rate_line,
     trial_case,
     trial_cases,
+    trial_summary,
     wilson_interval,
 )
 from c3bench.problems.config import load_config
@@ -99,3 +103,50 @@ def test_two_short_trials_end_to_end_then_resumed(tmp_path: Path,
     assert main(argv) == 0
     again = capsys.readouterr().out
     assert "2 stored" in again and "success 0/2" in again
+
+
+# Newcombe (1998) Table II, method 10 (the hybrid score interval without continuity
+# correction), his eight worked examples (a)-(h): (x1, n1, x2, n2, lower, upper).
+NEWCOMBE_TABLE_II = [
+    (56, 70, 48, 80, 0.0524, 0.3339),
+    (9, 10, 3, 10, 0.1705, 0.8090),
+    (6, 7, 2, 7, 0.0582, 0.8062),
+    (5, 56, 0, 29, -0.0381, 0.1926),
+    (0, 10, 0, 20, -0.1611, 0.2775),
+    (0, 10, 0, 10, -0.2775, 0.2775),
+    (10, 10, 0, 20, 0.6791, 1.0),
+    (10, 10, 0, 10, 0.6075, 1.0),
+]
+
+
+@pytest.mark.parametrize(("x1", "n1", "x2", "n2", "low", "high"), NEWCOMBE_TABLE_II)
+def test_newcombe_interval_matches_the_papers_table(x1: int, n1: int, x2: int, n2: int,
+                                                   low: float, high: float) -> None:
+    assert newcombe_interval(x1, n1, x2, n2) == pytest.approx((low, high), abs=6e-5)
+
+
+def test_newcombe_interval_is_antisymmetric_and_empty_sides_are_uninformative() -> None:
+    low, high = newcombe_interval(14, 20, 6, 20)
+    assert newcombe_interval(6, 20, 14, 20) == pytest.approx((-high, -low))
+    assert low < 0.4 < high  # it contains the observed difference
+    assert newcombe_interval(3, 0, 1, 5) == (-1.0, 1.0)
+
+
+def test_trial_summary_counts_rates_medians_and_labels() -> None:
+    rows = [{"success": True, "gentle_success": True, "passed_balance": False,
+             "peak_angle": 0.6, "label": "success", "error": ""},
+            {"success": True, "gentle_success": False, "passed_balance": True,
+             "peak_angle": 1.0, "label": "success", "error": ""},
+            {"success": False, "gentle_success": False, "passed_balance": True,
+             "peak_angle": 1.4, "label": "strike-topple", "error": ""},
+            {"success": False, "label": "error", "error": "RuntimeError: boom",
+             "peak_angle": float("nan")}]
+    summary = trial_summary(rows)
+    assert (summary.n, summary.successes, summary.gentle, summary.passed_balance,
+            summary.errors) == (4, 2, 1, 2, 1)
+    assert summary.success_interval == wilson_interval(2, 4)
+    assert summary.gentle_interval == wilson_interval(1, 4)
+    assert summary.rate == 0.5
+    assert summary.medians["peak_angle"] == pytest.approx(1.0)  # NaN ignored
+    assert np.isnan(summary.medians["impact_speed"])
+    assert summary.labels == (("success", 2), ("strike-topple", 1), ("error", 1))

@@ -1,15 +1,19 @@
-"""Lemke and projected Gauss-Seidel backends for the ``lcp`` family.
+"""Lemke and projected Gauss-Seidel backends for the ``lcp`` and ``lcp_general`` families.
 
 An ``lcp`` instance is the QP ``min 1/2 lam^T F lam + q^T lam`` s.t. ``lam >= 0`` (``P = F``
 symmetric PSD, ``lb = 0``, no ``ub``, no ``A``, no ``G``); its KKT conditions are
-``LCP(M = P, q)``: ``lam >= 0``, ``w = P lam + q >= 0``, ``lam^T w = 0``.
+``LCP(M = P, q)``: ``lam >= 0``, ``w = P lam + q >= 0``, ``lam^T w = 0``. An ``lcp_general``
+instance is ``LCP(M = data["F"], q = h)`` for any square ``F`` (stored as is,
+:func:`c3bench.problems.families.lcp_general`); both methods read ``M`` and ``q`` through
+:func:`c3bench.problems.instance.lcp_data`.
 
-Result conventions (qpsolvers): ``x = lam`` and the box dual ``z_box = min(-(P x + q), 0)``.
+Result conventions (qpsolvers): ``x = lam`` and the box dual ``z_box = min(-(M x + q), 0)``.
 The lower-bound dual must be ``<= 0``; at an exact solution ``w >= 0`` and the clip changes
 nothing. Clipping keeps the multiplier sign-feasible, so a violation ``w_i < 0`` shows up in the
 dual residual ``||P x + q + z_box|| = ||min(w, 0)||`` instead of being hidden by a wrong-signed
-dual; ``lam^T w`` shows up in the duality gap. ``diagnostics["natural_residual"]`` is
-``||min(lam, w)||_inf``.
+dual; ``lam^T w`` shows up in the duality gap. An ``lcp_general`` result carries no duals
+(its stored objective is 0; the natural residual is the LCP's certificate).
+``diagnostics["natural_residual"]`` is ``||min(lam, w)||_inf``.
 
 * ``lemke``: complementary pivoting (:func:`c3bench.solvers.lcp.lemke`; Lemke 1965);
   ``iterations`` = pivots. A terminal basis is checked before it is claimed: unless
@@ -25,7 +29,10 @@ dual; ``lam^T w`` shows up in the duality gap. ``diagnostics["natural_residual"]
   from the same iterate with a tighter natural-residual target. At most
   ``settings.max_iterations`` sweeps in all (default 10 000); ``iterations`` = sweeps; the
   natural residual after every sweep is in ``trace["natural_residual"]``. A warm start's
-  ``x`` is the initial iterate.
+  ``x`` is the initial iterate. PGS converges for symmetric PSD ``M`` with a positive
+  diagonal; on a non-symmetric ``F`` (``lcp_general``) it may diverge or cycle, and that is
+  reported as a failure (a non-finite iterate or the sweep limit), never as a solution; a zero
+  diagonal entry (Stewart-Trinkle's slack rows) fails at once.
 
 Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
 copying ``M`` and ``q`` to float64 arrays; solve is the pivoting (Lemke) or the sweeps (PGS),
@@ -46,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from c3bench.problems.instance import Problem
+from c3bench.problems.instance import Problem, lcp_data
 from c3bench.problems.names import Failure, Family, Precision
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.lcp import LCPSolution, lemke, projected_gauss_seidel
@@ -58,7 +65,12 @@ PGS_DEFAULT_MAX_SWEEPS = 10_000
 
 
 def lcp_form(problem: Problem) -> tuple[bool, str]:
-    """Whether ``problem`` is ``min 1/2 x P x + q x s.t. x >= 0`` exactly, with the reason."""
+    """Whether ``problem`` is ``min 1/2 x P x + q x s.t. x >= 0`` exactly, with the reason.
+
+    An ``lcp_general`` instance always is an LCP: its form is checked when it is built
+    (:class:`~c3bench.problems.instance.Problem` validates it)."""
+    if problem.family == Family.LCP_GENERAL:
+        return True, ""
     if problem.A is not None and problem.n_eq > 0:
         return False, "an LCP backend takes no equality constraints"
     if problem.G is not None and problem.n_ineq > 0:
@@ -73,12 +85,13 @@ def lcp_form(problem: Problem) -> tuple[bool, str]:
 class _LCPBackend(Backend):
     """Shared conversion: ``LCP(P, q)`` from the instance, the result's box duals."""
 
-    families = (Family.LCP,)
+    families = (Family.LCP, Family.LCP_GENERAL)
     package = ""  # our own code (numpy)
     precisions = (Precision.FLOAT64,)
 
     def accepts(self, problem: Problem) -> tuple[bool, str]:
-        """The ``lcp`` family in the exact form ``x >= 0`` (:func:`lcp_form`)."""
+        """The ``lcp`` family in the exact form ``x >= 0`` (:func:`lcp_form`), and
+        ``lcp_general``."""
         ok, reason = super().accepts(problem)
         if not ok:
             return ok, reason
@@ -94,8 +107,9 @@ class _LCPBackend(Backend):
         """Run the method; an unsolved LCP is ``Failure.ERROR`` with the last iterate."""
         watch = Stopwatch()
         with watch.lap("setup"):
-            M = np.array(problem.P, dtype=np.float64)
-            q = np.array(problem.q, dtype=np.float64)
+            matrix, offset = lcp_data(problem)
+            M = np.array(matrix, dtype=np.float64)
+            q = np.array(offset, dtype=np.float64)
         with watch.lap("solve"):
             outcome = self._run(M, q, settings, warm_start)
         trace: dict[str, list[float]] = {}
@@ -110,8 +124,9 @@ class _LCPBackend(Backend):
                                  **common)
         x = np.asarray(outcome.z, dtype=np.float64)
         w = M @ x + q
+        duals = None if problem.family == Family.LCP_GENERAL else np.minimum(-w, 0.0)
         return Result(solver=self.name, problem=problem.name, found=True,
-                      status=outcome.status, x=x, z_box=np.minimum(-w, 0.0),
+                      status=outcome.status, x=x, z_box=duals,
                       diagnostics={"natural_residual": natural_residual(M, q, x)}, **common)
 
 
@@ -119,7 +134,7 @@ class LemkeBackend(_LCPBackend):
     """Lemke's complementary pivoting method (Lemke 1965)."""
 
     name = "lemke"
-    description = "Lemke's complementary pivoting (covering vector e = 1) on LCP(P, q)"
+    description = "Lemke's complementary pivoting (covering vector e = 1) on LCP(F, q)"
 
     def _run(self, M: np.ndarray, q: np.ndarray, settings: Settings,
              warm_start: WarmStart | None) -> LCPSolution:
@@ -131,7 +146,7 @@ class PGSBackend(_LCPBackend):
     """Projected Gauss-Seidel sweeps (Cottle, Pang and Stone 1992)."""
 
     name = "pgs"
-    description = "projected Gauss-Seidel on LCP(P, q); stops on the natural residual and lam^T w"
+    description = "projected Gauss-Seidel on LCP(F, q); stops on the natural residual and lam^T w"
 
     def _run(self, M: np.ndarray, q: np.ndarray, settings: Settings,
              warm_start: WarmStart | None) -> LCPSolution:
