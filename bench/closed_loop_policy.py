@@ -144,6 +144,7 @@ class ControllerSpec:
     feedback_kd: float = 20.0
     qp_time_limit: float | None = 10.0
     contact_model: str = ContactModelOption.ANITESCU.value
+    warm_dual: str = "zero"
 
     def __post_init__(self) -> None:
         """Check every field (:class:`InputError` naming the option and the allowed range)."""
@@ -154,6 +155,11 @@ class ControllerSpec:
         if self.controller not in CONTROLLERS:
             raise InputError(f"--controller must be one of {', '.join(CONTROLLERS)}, got "
                              f"{self.controller!r}")
+        from c3bench.solvers.admm.options import DUAL_WARM_STARTS
+
+        if self.warm_dual not in DUAL_WARM_STARTS:
+            raise InputError(f"warm_dual must be one of {', '.join(DUAL_WARM_STARTS)}, got "
+                             f"{self.warm_dual!r}")
         if self.rho_schedule not in RHO_SCHEDULES:
             raise InputError(f"--rho-schedule must be one of {', '.join(RHO_SCHEDULES)}, "
                              f"got {self.rho_schedule!r}")
@@ -190,7 +196,9 @@ class ControllerSpec:
         backend = "compiled" if self.controller in FAST_CONTROLLERS else self.qp_backend
         feedback = "-pd" if self.feedback else ""
         contact = "" if self.contact_model == ContactModelOption.ANITESCU else "-st"
-        return f"{self.controller}-{backend}-{self.rho_schedule}{extra}{feedback}{contact}"
+        dual = "" if self.warm_dual == "zero" else f"-w{self.warm_dual}"
+        return (f"{self.controller}-{backend}-{self.rho_schedule}{extra}{feedback}{contact}"
+                f"{dual}")
 
     @property
     def lcs_contact_model(self) -> ContactModel:
@@ -268,7 +276,8 @@ def make_policy(spec: ControllerSpec, config: Config,
 
         linearizer = BatchLinearizer(sides, config, contact_model=spec.lcs_contact_model)
         fast = FastC3PlusController(CompiledC3Plus(mpc, fast_options(
-            rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations)))
+            rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
+            warm_dual=spec.warm_dual)))
         warm_up()  # the compiled Lemke of the weighting: loaded once, outside the steps
 
         def models_at(x: np.ndarray, u: np.ndarray) -> Any:
@@ -288,6 +297,7 @@ def make_policy(spec: ControllerSpec, config: Config,
             variant=Variant.C3 if spec.controller == "c3" else Variant.C3PLUS,
             qp_backend=spec.qp_backend, projection_backend=spec.projection,
             rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
+            warm_dual=spec.warm_dual,
             keep_iterates=False, backends=dict(backends or {})))
 
         def models_at(x: np.ndarray, u: np.ndarray) -> Any:

@@ -292,15 +292,19 @@ def test_dual_update_and_warm_start_shift_by_hand() -> None:
     np.testing.assert_array_equal(s2[1], 10 * d2)
 
 
-def test_controller_warm_starts_from_the_shifted_iterates(small: SimpleNamespace) -> None:
+@pytest.mark.parametrize("warm_dual", ["zero", "scaled"])
+def test_controller_warm_starts_from_the_shifted_iterates(small: SimpleNamespace,
+                                                         warm_dual: str) -> None:
     case = small.cases[0]
-    controller = C3Controller(_exact_options(admm_iterations=3))
+    controller = C3Controller(_exact_options(admm_iterations=3, warm_dual=warm_dual))
     first = controller.step(case.lcs, small.mpc, case.x0)
     second = controller.step(case.lcs, small.mpc, case.x0)
     assert first.ok and second.ok
     delta, w = shift_warm_start(first.delta, first.w)
+    assert np.any(w != 0.0)
     np.testing.assert_array_equal(second.iterates[0].delta, delta)
-    np.testing.assert_array_equal(second.iterates[0].w, w)
+    np.testing.assert_array_equal(second.iterates[0].w,
+                                  w if warm_dual == "scaled" else np.zeros_like(w))
     assert second.iterates[0].rho == REFERENCE_RHO0
     np.testing.assert_array_equal(controller.last_safe_input, second.u)
 

@@ -24,11 +24,18 @@ from c3bench.solvers.admm.controller import (
 )
 from c3bench.solvers.admm.kernel import Kernel, KernelFailure, StepInputs
 from c3bench.solvers.admm.loop import admm_iteration, dual_update, run_admm
-from c3bench.solvers.admm.options import C3Options, Output, RhoScheduleName, Stopping
+from c3bench.solvers.admm.options import (
+    C3Options,
+    DualWarmStart,
+    Output,
+    RhoScheduleName,
+    Stopping,
+)
 from c3bench.solvers.admm.schedules import Adaptive, Geometric, ResidualBalancing, schedule_for
 from c3bench.solvers.admm.solution import C3Iterate, C3Solution, C3Trace, FastTimings
 
 __all__ = ["Adaptive", "C3Controller", "C3Iterate", "C3Options", "C3Solution", "C3Trace",
+           "DualWarmStart",
            "FastC3PlusController", "FastTimings", "Geometric", "Kernel", "KernelFailure",
            "Output", "ResidualBalancing", "RhoScheduleName", "StepInputs", "Stopping",
            "WarmStartController", "admm_iteration", "dual_update", "run_admm", "schedule_for",

@@ -5,11 +5,12 @@
 * :func:`solve_batched`: any batched kernel (numpy Riccati, compiled, JAX) on an
   :class:`~c3bench.problems.lcs.LCSBatch`;
 * :class:`WarmStartController`: the controller logic shared by every kernel. After a successful
-  step ``delta`` and ``w`` are shifted one step forward in time (:func:`.loop.shift_warm_start`),
-  the rho schedule restarts from ``rho0`` and the scaled dual is kept as it is (a choice: the
-  unscaled dual ``2 G w`` therefore shrinks with the restarted, smaller ``rho``); a failed step
-  drops the warm start and returns the last safe input; ``options.warm_start=False`` makes
-  every step cold.
+  step ``delta`` is shifted one step forward in time (:func:`.loop.shift_warm_start`), the rho
+  schedule restarts from ``rho0`` and the scaled dual ``w`` restarts from zero, as in the C3
+  reference implementation (``options.warm_dual="scaled"`` keeps the shifted ``w`` instead:
+  :class:`.options.DualWarmStart` says why that diverges under residual balancing); a failed
+  step drops the warm start and returns the last safe input; ``options.warm_start=False``
+  makes every step cold.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from c3bench.solvers.admm.loop import (
     run_admm,
     shift_warm_start,
 )
-from c3bench.solvers.admm.options import C3Options
+from c3bench.solvers.admm.options import C3Options, DualWarmStart
 from c3bench.solvers.admm.solution import C3Solution, C3Trace
 from c3bench.solvers.admm.stacked import StackedKernel, qp_layout
 
@@ -127,7 +128,10 @@ class WarmStartController:
         if not self.options.warm_start or self.delta is None or self.w is None or \
                 self.delta.shape != shape:
             return None, None
-        return shift_warm_start(self.delta, self.w)
+        delta, w = shift_warm_start(self.delta, self.w)
+        if self.options.warm_dual == DualWarmStart.ZERO:
+            w = np.zeros_like(w)
+        return delta, w
 
     def record(self, solution: C3Solution) -> C3Solution:
         """Keep a successful step's iterates and input; drop them after a failure."""

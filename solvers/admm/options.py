@@ -51,11 +51,28 @@ class Output(StrEnum):
     Z = "z"
 
 
+class DualWarmStart(StrEnum):
+    """What the scaled dual ``w`` of a warm-started control step starts from.
+
+    ``zero`` (default): ``w = 0`` at every control step, only ``delta`` is carried (the C3
+    reference implementation's ``Solve``: ``w`` and ``G`` restart each call). ``scaled``: the
+    previous step's ``w`` shifted one step, kept scaled as it is. Because rho restarts from
+    ``rho0`` each step, a kept scaled dual means an unscaled multiplier ``2 G w`` changed by
+    ``rho0 / rho_final``: harmless when the schedule ended above ``rho0`` (geometric), but it
+    compounds from step to step when it ended below (residual balancing: measured plan errors
+    of 1e51 within a second of closed loop on the cube).
+    """
+
+    ZERO = "zero"
+    SCALED = "scaled"
+
+
 ENUMERATION = "enumeration"
 """``projection_backend`` value of C3's exact projection by contact-mode enumeration."""
 VARIANTS: tuple[Variant, ...] = (Variant.C3PLUS, Variant.C3)
 RHO_SCHEDULES: tuple[str, ...] = tuple(RhoScheduleName)
 STOPPING_RULES: tuple[str, ...] = tuple(Stopping)
+DUAL_WARM_STARTS: tuple[str, ...] = tuple(DualWarmStart)
 OUTPUTS: tuple[str, ...] = tuple(Output)
 WEIGHT_FLOOR = 1e-6
 """Smallest sample weight of the robust controller, relative to the largest."""
@@ -121,8 +138,11 @@ class C3Options:
         Enforce ``mpc.limits`` (input and state boxes) where the method puts them: bounds of
         the reference kernel's QP step, a box projection in the fast kernels.
     warm_start
-        The controller starts each control step from the previous one's shifted ``delta`` and
-        ``w`` (``False``: every step cold-starts).
+        The controller starts each control step from the previous one's shifted ``delta``
+        (``False``: every step cold-starts).
+    warm_dual
+        What ``w`` starts from in a warm-started step (:class:`DualWarmStart`): ``zero``
+        (default) or the previous step's shifted ``w``.
     output
         ``delta`` (default) or ``z`` (:class:`Output`).
     record_conditioning, keep_iterates
@@ -156,6 +176,7 @@ class C3Options:
     input_bounds: bool = False
     use_limits: bool = True
     warm_start: bool = True
+    warm_dual: str = DualWarmStart.ZERO
     output: str = Output.DELTA
     record_conditioning: bool = False
     keep_iterates: bool = True
@@ -165,7 +186,8 @@ class C3Options:
         for name, value, allowed in (("variant", self.variant, VARIANTS),
                                      ("rho_schedule", self.rho_schedule, RHO_SCHEDULES),
                                      ("stopping", self.stopping, STOPPING_RULES),
-                                     ("output", self.output, OUTPUTS)):
+                                     ("output", self.output, OUTPUTS),
+                                     ("warm_dual", self.warm_dual, DUAL_WARM_STARTS)):
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
         if not isinstance(self.admm_iterations, int) or self.admm_iterations < 1:
