@@ -54,7 +54,7 @@ from c3bench.bench.cli_options import (
     positive_int,
 )
 from c3bench.bench.cli_problems import add_problems, add_skip_bad, capture_for, read_instance_dir
-from c3bench.bench.planning import DEFAULT_PRECISIONS, DEFAULT_SETTINGS, STARTS
+from c3bench.bench.planning import DEFAULT_PRECISIONS, DEFAULT_SETTINGS, SEQUENCE_SCOPE, STARTS
 from c3bench.problems.capture import SUITES
 from c3bench.problems.errors import C3BenchError, InputError, Terminated
 from c3bench.problems.names import Family, Precision, Profile, Start
@@ -145,7 +145,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         reference_time_limit=args.reference_time_limit,
         capture=capture_for("controller"), progress=not args.quiet,
         max_cells=args.max_cells, preload=tuple(args.plugin), skip_bad=args.skip_bad,
-        instances=args.instances)
+        instances=args.instances,
+        sequence_scope=None if args.sequence_all else SEQUENCE_SCOPE)
     if summary.planned == 0:
         raise InputError("nothing to run: no solver accepts any instance of the selection "
                          "(--solvers, --families, --precision)")
@@ -247,7 +248,12 @@ def _add_benchmark(sub: Any) -> None:
     add_list(run, "--precision", metavar="PRECISION", choices=tuple(Precision),
              default=DEFAULT_PRECISIONS, help="precisions, float32 only where a backend runs in it")
     add_list(run, "--start", metavar="START", choices=tuple(Start), default=STARTS,
-             help="cold and/or warm starts")
+             help="cold, warm and/or sequence starts (sequence: the 10 QP steps of one ADMM "
+                  "run per state with the backend as QP step; C3+ bounded heads unless "
+                  "--sequence-all)")
+    run.add_argument("--sequence-all", action="store_true",
+                     help="sequence cells for every c3plus_qp / c3_qp head (C3 and the "
+                          "equality variant too; C3's enumeration projection makes them slow)")
     add_list(run, "--families", metavar="FAMILY", choices=tuple(Family),
              help="restrict to these families", default_text="all")
     add_executor(run, "cells")

@@ -10,6 +10,12 @@ reuses its last answer. A warm cell is timed by the warm contract of
 own update API (OSQP, ProxQP, Clarabel, PIQP) takes the instance's vectors and it solves from
 that warm start; ``setup_time`` is the update, ``total_time`` update + solve. Backends
 without an update API pay setup + solve (their ``warm_support`` says so).
+
+``sequence`` cells (:mod:`bench.sequence`) exist only for the *head* of each ADMM sequence
+(:func:`sequence_heads`: the instance with the lowest ``admm_iteration`` of its sequence) of
+a ``c3plus_qp`` / ``c3_qp`` family and QP variant in the run's sequence scope
+(:data:`SEQUENCE_SCOPE` unless chosen otherwise), one per backend that accepts the head: the
+whole ADMM run at that state with the backend as its QP step, timed end to end.
 """
 
 from __future__ import annotations
@@ -20,14 +26,22 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from c3bench.bench import store
+from c3bench.bench.sequence import SEQUENCE_FAMILIES, SEQUENCE_STEPS
 from c3bench.problems.errors import InputError
 from c3bench.problems.instance import Problem
-from c3bench.problems.names import Precision, Profile, Start
+from c3bench.problems.names import Family, Precision, Profile, QPVariant, Start
 from c3bench.solvers import registry
 from c3bench.solvers.child_process import STARTUP_SECONDS
 
-STARTS: tuple[Start, ...] = (Start.COLD, Start.WARM)
-"""The starts of a run unless chosen otherwise, cold first."""
+STARTS: tuple[Start, ...] = (Start.COLD, Start.WARM, Start.SEQUENCE)
+"""The starts of a run (``c3bench run``, :func:`bench.runner.run_suite`) unless chosen
+otherwise, cold first; the controller sequence too, so the report has its table
+(:data:`SEQUENCE_SCOPE` keeps it to one cell per state and backend)."""
+SEQUENCE_SCOPE: tuple[tuple[str, str], ...] = ((Family.C3PLUS_QP, QPVariant.BOUNDED),)
+"""``(family, QP variant)`` of the heads that get ``sequence`` cells unless chosen otherwise:
+C3+ with the limits in its QP step, the controller the suites capture. C3's sequence
+(``c3_qp``) projects by enumerating contact modes, some 4 s a run on the cube, and the
+``equality`` variant doubles the cells; both run when the scope is ``None`` (every head)."""
 DEFAULT_PRECISIONS: tuple[Precision, ...] = tuple(Precision)
 """Both precisions, float64 first (float32 cells only where a backend runs in it)."""
 DEFAULT_SETTINGS: tuple[Profile, ...] = (Profile.DEFAULT,)
@@ -91,6 +105,13 @@ class RunOptions:
         overrun means a stuck worker, never a slow solve."""
         return 2.0 * self.time_limit * (self.repeats + 1) + 2.0 * STARTUP_SECONDS + 60.0
 
+    def sequence_budget(self) -> float:
+        """Watchdog for one ``sequence`` cell: its child's runs (the untimed one, the timed
+        ones and the reference, each bounded by ``SEQUENCE_STEPS`` times a per-QP limit),
+        with the start-up allowances."""
+        runs = self.time_limit * (self.repeats + 1) + self.reference_time_limit
+        return 2.0 * SEQUENCE_STEPS * runs + 2.0 * STARTUP_SECONDS + 60.0
+
     def reference_budget(self) -> float:
         """Watchdog for one reference (two isolated solves: the reference and its
         cross-check, each with its child's start-up allowances)."""
@@ -101,6 +122,26 @@ def sequence_key(problem: Problem) -> str:
     """Identity of an ADMM sequence: family and all metadata but the iteration and rho."""
     meta = {k: v for k, v in problem.meta.items() if k not in ITERATION_KEYS}
     return json.dumps([str(problem.family), problem.n, meta], sort_keys=True, default=str)
+
+
+def sequence_heads(problems: Sequence[Problem],
+                   scope: Sequence[tuple[str, str]] | None = None) -> set[str]:
+    """Names of the instances that head their ADMM sequence: per :func:`sequence_key`, the
+    ``c3plus_qp`` / ``c3_qp`` instance with the lowest ``admm_iteration``; only those whose
+    ``(family, meta["variant"])`` is in ``scope`` (``None``: every one)."""
+    allowed = None if scope is None else {(str(f), str(v)) for f, v in scope}
+    heads: dict[str, tuple[int, str]] = {}
+    for problem in problems:
+        iteration = problem.meta.get("admm_iteration")
+        if problem.family not in SEQUENCE_FAMILIES or iteration is None:
+            continue
+        if allowed is not None and (str(problem.family),
+                                    str(problem.meta.get("variant", ""))) not in allowed:
+            continue
+        key = sequence_key(problem)
+        heads[key] = min(heads.get(key, (int(iteration), problem.name)),
+                         (int(iteration), problem.name))
+    return {name for _, name in heads.values()}
 
 
 def predecessors(problems: Sequence[Problem]) -> dict[str, str]:
@@ -147,8 +188,10 @@ def _check_names(kind: str, names: Sequence[str], known: Sequence[str]) -> None:
 
 def plan_cells(problems: Sequence[Problem], solvers: Sequence[str] | None,
                settings: Sequence[str], precisions: Sequence[str],
-               starts: Sequence[str], previous: dict[str, str]) -> Plan:
-    """Every cell a backend can take; warm cells only where a predecessor exists.
+               starts: Sequence[str], previous: dict[str, str],
+               heads: set[str] | None = None) -> Plan:
+    """Every cell a backend can take; warm cells only where a predecessor exists, sequence
+    cells only for ``heads`` (default: :func:`sequence_heads` in :data:`SEQUENCE_SCOPE`).
 
     A backend whose ``accepts()`` raises is planned: its solve then records the error
     (``accepts() raised ...``) instead of the cells silently missing.
@@ -166,6 +209,7 @@ def plan_cells(problems: Sequence[Problem], solvers: Sequence[str] | None,
     names = list(infos) if solvers is None else list(dict.fromkeys(solvers))
     chosen = {n: infos[n].version for n in names if infos[n].available}
     skipped = {n: infos[n].reason for n in names if not infos[n].available}
+    heads = sequence_heads(problems, SEQUENCE_SCOPE) if heads is None else heads
     cells = []
     for problem in problems:
         for name in chosen:
@@ -182,6 +226,8 @@ def plan_cells(problems: Sequence[Problem], solvers: Sequence[str] | None,
                 for profile in settings:
                     for start in starts:
                         if start == Start.WARM and problem.name not in previous:
+                            continue
+                        if start == Start.SEQUENCE and problem.name not in heads:
                             continue
                         cells.append(Cell(problem.name, str(problem.family), name,
                                           str(profile), str(precision), str(start)))

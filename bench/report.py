@@ -2,10 +2,12 @@
 
 Layout (in the spirit of qpbenchmark's reports): header with the machine and versions; how
 success and the aggregates are defined; the solver table; the references; a success overview;
-one table per (family, variant, settings, precision, start); the cells whose solver claimed a
-wrong solution; the share of QP cells within the control budget; failures; figures with one
-caption line each (or a note saying why a figure has no data). Tables are sorted and numbers
-formatted with fixed rules (:func:`bench.tables.fmt`) so the file diffs well between runs.
+one table per (family, variant, settings, precision, start); the controller-sequence tables
+(:mod:`bench.report_sequence`: ``sequence`` cells are kept out of every other section); the
+cells whose solver claimed a wrong solution; the share of QP cells within the control budget;
+failures; figures with one caption line each (or a note saying why a figure has no data).
+Tables are sorted and numbers formatted with fixed rules (:func:`bench.tables.fmt`) so the
+file diffs well between runs.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from c3bench.bench.perf import (
 from c3bench.bench.plots import all_figures, ordered_settings
 from c3bench.bench.reference import AGREE_COST, REFERENCE_PLANS, load_references, summarise
 from c3bench.bench.report_accuracy import budget_section, claimed_wrong_section
+from c3bench.bench.report_sequence import other_rows, sequence_section
 from c3bench.bench.report_why import why_slow_section
 from c3bench.bench.tables import NOT_RUN, fmt, fmt_accuracy, markdown_table
 from c3bench.problems.names import QP_FAMILIES, Precision, Start
@@ -317,22 +320,24 @@ def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
     ``budget_ms`` is the control budget of one QP solve in ms (default: control period /
     ADMM iterations, :data:`bench.budgets.DEFAULT_BUDGET_S`).
     """
-    frame = store.read_results(paths.root) if frame is None else frame
+    everything = store.read_results(paths.root) if frame is None else frame
+    frame = other_rows(everything)  # the sequence cells have their own section
     info = json.loads(paths.run_info.read_text()) if paths.run_info.exists() else {}
     summary = aggregate(frame)
     suite = paths.root.name
     out = [f"# c3bench report: suite `{suite}`\n",
            f"Generated {dt.datetime.now(dt.UTC).strftime('%Y-%m-%d')} from "
            f"`{paths.parquet.name}` (schema version {store.SCHEMA_VERSION}).\n",
-           "## Machine and versions\n", *_header(info, frame),
+           "## Machine and versions\n", *_header(info, everything),
            "## Method\n", _method(),
-           "## Solvers\n", _solver_table(info, frame),
+           "## Solvers\n", _solver_table(info, everything),
            "## Reference optima\n", _reference_table(paths),
            "## Success overview\n", _overview(summary),
            "## Results by family and settings\n"]
     if summary.empty:
         out.append("No results.\n")
     out += _family_tables(frame, summary)
+    out += ["## Controller sequence\n", sequence_section(everything, paths)]
     out += ["## Why slow\n", why_slow_section(frame),
             "## Claimed success but wrong\n", claimed_wrong_section(frame),
             "## Control budget\n", budget_section(frame, budget_seconds(budget_ms),

@@ -39,12 +39,14 @@ from c3bench.bench.machine import machine_info, utc_now
 from c3bench.bench.planning import (
     DEFAULT_PRECISIONS,
     DEFAULT_SETTINGS,
+    SEQUENCE_SCOPE,
     STARTS,
     Cell,
     Plan,
     RunOptions,
     plan_cells,
     predecessors,
+    sequence_heads,
 )
 from c3bench.bench.reference import (
     Reference,
@@ -53,7 +55,7 @@ from c3bench.bench.reference import (
     reusable,
     save_references,
 )
-from c3bench.bench.rows import CellOutcome, reference_task, run_cell
+from c3bench.bench.rows import CellOutcome, reference_task, run_cell, run_sequence_cell
 from c3bench.problems.capture import SUITES, SuiteSpec
 from c3bench.problems.errors import InputError
 from c3bench.problems.identity import (
@@ -186,9 +188,13 @@ def _bar(enabled: bool, total: int, description: str, unit: str) -> Any:
 
 def _write_run_info(paths: store.SuitePaths, plan: Plan, name: str, jobs: int,
                     scheduler: str | None, options: RunOptions, settings: Sequence[str],
-                    precisions: Sequence[str], starts: Sequence[str]) -> None:
+                    precisions: Sequence[str], starts: Sequence[str],
+                    sequence_scope: Sequence[tuple[str, str]] | None = None) -> None:
     """``run_info.json``: the machine, the options and the solver table of this run."""
     info = machine_info()
+    if Start.SEQUENCE in starts:
+        info["sequence_scope"] = "every head" if sequence_scope is None else \
+            [f"{family}/{variant}" for family, variant in sequence_scope]
     info.update({"suite": name, "jobs": jobs, "scheduler": scheduler or "",
                  "repeats": options.repeats, "time_limit": options.time_limit,
                  "settings": [str(s) for s in settings],
@@ -303,6 +309,9 @@ def _runnable(todo: list[Cell], references: dict[str, Reference], lost: dict[str
     there or failed as a solve, never lost to an infrastructure fault."""
     runnable: list[Cell] = []
     for cell in todo:
+        if cell.start == Start.SEQUENCE:  # its reference is its own reference run
+            runnable.append(cell)
+            continue
         before = previous.get(cell.instance) if cell.start == Start.WARM else None
         reason = lost.get(cell.instance) or (lost.get(before) if before else None)
         if reason:
@@ -320,10 +329,16 @@ def _runnable(todo: list[Cell], references: dict[str, Reference], lost: dict[str
 def _cell_tasks(pool: Executor, cells: list[Cell], problems: dict[str, Problem],
                 hashes: dict[str, str], references: dict[str, Reference],
                 previous: dict[str, str], plan: Plan, options: RunOptions) -> list[Task]:
-    """One :func:`run_cell` task per cell (problems shared once each)."""
+    """One :func:`run_cell` task per cell (:func:`run_sequence_cell` for a ``sequence``
+    cell; problems shared once each)."""
     shared = {n: pool.share(problems[n]) for n in {c.instance for c in cells}}
     tasks: list[Task] = []
     for cell in cells:
+        if cell.start == Start.SEQUENCE:
+            tasks.append((cell.key, run_sequence_cell,
+                          (cell, shared[cell.instance], options, plan.solvers[cell.solver],
+                           None, None, hashes[cell.instance]), options.sequence_budget()))
+            continue
         ref = references.get(cell.instance)
         warm = references[previous[cell.instance]].warm_start() \
             if cell.start == Start.WARM else None
@@ -377,6 +392,7 @@ def run_suite(
     preload: Sequence[str] = (),
     skip_bad: bool = False,
     instances: str | Path | None = None,
+    sequence_scope: Sequence[tuple[str, str]] | None = SEQUENCE_SCOPE,
 ) -> RunSummary:
     """Run a suite into ``results_dir/<suite>/`` (see the module docstring).
 
@@ -413,6 +429,10 @@ def run_suite(
         Run this directory of instances instead of a generated suite (``run --instances``):
         they are copied into ``results_dir/<suite>/instances`` (:func:`adopt_instances`;
         ``suite`` then only names the results folder, by default the directory's name).
+    sequence_scope
+        ``(family, QP variant)`` pairs whose ADMM-sequence heads get ``sequence`` cells when
+        ``starts`` has ``sequence`` (:data:`bench.planning.SEQUENCE_SCOPE`; ``None``: every
+        ``c3plus_qp`` / ``c3_qp`` head).
 
     Returns
     -------
@@ -444,12 +464,13 @@ def run_suite(
                                      instances)
             previous = predecessors(list(problems.values()))
             plan = plan_cells(list(problems.values()), solvers, settings, precisions, starts,
-                              previous)
+                              previous, sequence_heads(list(problems.values()),
+                                                       sequence_scope))
             options = RunOptions(repeats=repeats, time_limit=time_limit,
                                  reference_time_limit=reference_time_limit,
                                  preload=tuple(preload), suite=name)
             _write_run_info(paths, plan, name, jobs, scheduler, options, settings, precisions,
-                            starts)
+                            starts, sequence_scope)
             done, stale = _sweep_stored(paths, hashes, rerun)
             todo = [cell for cell in plan.cells if cell.key not in done]
             already = len(plan.cells) - len(todo)
@@ -457,7 +478,7 @@ def run_suite(
             with open(paths.solver_log, "a") as log:
                 log.write(f"=== run started {utc_now()} ===\n")
             # references: for the instances of the cells to run and their predecessors
-            needed = {c.instance for c in todo}
+            needed = {c.instance for c in todo if c.start != Start.SEQUENCE}
             needed |= {previous[c.instance] for c in todo if c.start == Start.WARM}
             references, lost = _references(pool, paths, needed, problems, hashes, options,
                                            progress, tally)

@@ -85,13 +85,15 @@ SCHEMA: tuple[Column, ...] = (
            "high_accuracy."),
     Column("tolerance", "float64", "Tolerance of the profile: solver target and success "
            "threshold."),
-    Column("time_limit", "float64", "Wall-clock limit per solve (s); failures count as this in "
-           "time aggregates."),
+    Column("time_limit", "float64", "Wall-clock limit per solve (s; a sequence cell: per "
+           "ADMM run, 10 x the per-QP limit); failures count as this in time aggregates."),
     Column("precision", "str", "Floating-point precision the backend ran in: float64 or "
            "float32."),
     Column("start", "str", "cold (fresh solver object), or warm (solver object kept: update "
            "API with the new vectors, started from the reference solution of the previous "
-           "ADMM iterate; solvers.timing)."),
+           "ADMM iterate; solvers.timing), or sequence (the 10 QP steps of one ADMM run at "
+           "the instance's state, the backend as its QP step; times summed over the steps, "
+           "residuals of the worst step; bench.sequence)."),
     Column("repeats", "int64", "Timed repeats after one untimed warm-up; times are medians."),
     Column("state_index", "Int64", "Step of the scripted push the instance was linearised at."),
     Column("admm_iteration", "Int64", "ADMM iteration the instance was captured at (empty for "
