@@ -1,8 +1,9 @@
 """Handlers of ``c3bench closed-loop``, ``closed-loop-trials``, ``closed-loop-suite`` and
 ``sweep``.
 
-The parser of every command is built in one place, :func:`bench.cli.build_parser`; each
-handler here takes the parsed namespace and returns an exit code (:mod:`bench.cli`). Every
+The parser of every command is assembled in one place, :func:`bench.cli.build_parser`, which
+adds these commands' subparsers with :func:`add_closed_loop`; each handler here takes the
+parsed namespace and returns an exit code (:mod:`bench.cli`). Every
 command writes under the results root ``--results ROOT`` (:func:`bench.store.closed_loop_dir`):
 ``ROOT/closed_loop/runs/<controller>/`` (one run), ``ROOT/closed_loop/trials/<controller>/``
 (randomized trials), ``ROOT/closed_loop/<suite>/`` and ``ROOT/closed_loop/sweep/``.
@@ -21,7 +22,17 @@ import sys
 from typing import Any
 
 from c3bench.bench import store
-from c3bench.bench.cli_options import EXIT_ERROR, EXIT_OK
+from c3bench.bench.cli_options import (
+    EXIT_ERROR,
+    EXIT_OK,
+    add_executor,
+    add_list,
+    add_quiet,
+    add_results,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 from c3bench.bench.closed_loop_checks import (
     check_backends,
     check_render_path,
@@ -221,3 +232,132 @@ def cmd_closed_loop_trials(args: argparse.Namespace) -> int:
     atomic_write_bytes(directory / "summary.txt", ("\n".join(lines) + "\n").encode())
     print(f"records         {directory} (summary.txt, results.parquet, cells/)")
     return _missing(run)
+
+
+def add_closed_loop(sub: Any) -> None:
+    """``closed-loop``, ``closed-loop-trials``, ``closed-loop-suite`` and ``sweep``."""
+    from c3bench.bench.closed_loop import CONTROLLERS, ControllerSpec
+    from c3bench.bench.closed_loop_suite import (
+        CLOSED_LOOP_SUITES,
+        SWEEP_DTS,
+        SWEEP_MODEL_LS,
+        SWEEP_Q_BOXES,
+        SWEEP_SCHEDULES,
+    )
+    from c3bench.solvers.c3 import RHO_SCHEDULES
+
+    spec = ControllerSpec()
+    loop = sub.add_parser("closed-loop", help="drive the MuJoCo cube with C3 / C3+",
+                          description="One closed-loop run: the controller replans every dt "
+                                      "from the measured MuJoCo state.")
+    loop.add_argument("--controller", choices=CONTROLLERS, default=spec.controller,
+                      help=f"controller (default: {spec.controller})")
+    loop.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
+                      help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    loop.add_argument("--projection", default=spec.projection, metavar="NAME",
+                      help=f"C3's MIQP projection backend (default: {spec.projection})")
+    loop.add_argument("--rho-schedule", choices=RHO_SCHEDULES, default=spec.rho_schedule,
+                      help=f"ADMM weight schedule (default: {spec.rho_schedule})")
+    loop.add_argument("--iterations", type=positive_int, default=spec.admm_iterations,
+                      metavar="N",
+                      help=f"ADMM iterations per step (default: {spec.admm_iterations})")
+    loop.add_argument("--samples", type=positive_int, default=spec.samples, metavar="N",
+                      help=f"robust variants: sampled models (default: {spec.samples})")
+    loop.add_argument("--no-weighting", action="store_true",
+                      help="robust variants: uniform sample weights")
+    loop.add_argument("--feedback", action="store_true",
+                      help="low-level PD tracking of the plan's ball motion between steps")
+    loop.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
+                      help=f"cube side of the model (m; default: {spec.model_l:g})")
+    loop.add_argument("--duration", type=positive_float, default=3.0, metavar="S",
+                      help="seconds of simulation, a multiple of dt (default: 3; success "
+                           "needs at least 3)")
+    loop.add_argument("--qp-time-limit", type=positive_float, default=spec.qp_time_limit,
+                      metavar="S",
+                      help="seconds per QP (and C3 projection) solve, run in an isolated "
+                           "child; a solve that overruns is killed and the step falls back "
+                           f"(default: {spec.qp_time_limit:g})")
+    loop.add_argument("--contact-model", default="anitescu", metavar="MODEL",
+                      help="contact model of the controller's LCS: anitescu (default) or "
+                           "stewart-trinkle")
+    loop.add_argument("--seed", type=nonnegative_int, default=spec.seed, metavar="N",
+                      help=f"seed of the sampled model sides (default: {spec.seed})")
+    loop.add_argument("--config", default=None, metavar="FILE",
+                      help="task constants (TOML; default: the packaged cube_tipping.toml)")
+    add_results(loop, "writes ROOT/closed_loop/runs/<controller label>/")
+    loop.add_argument("--render", default=None, metavar="GIF",
+                      help="also write an animated GIF of the run to this path")
+    add_quiet(loop)
+    loop.set_defaults(handler=cmd_closed_loop)
+
+    trials = sub.add_parser("closed-loop-trials",
+                            help="randomized closed-loop trials with success-rate intervals",
+                            description="N closed-loop episodes of one controller with a "
+                                        "randomized ball start, cube mass, friction and cube "
+                                        "side (resumable); prints the success rate with its "
+                                        "Wilson 95% interval and the metric medians.")
+    trials.add_argument("--controller", choices=CONTROLLERS, default=spec.controller,
+                        help=f"controller (default: {spec.controller})")
+    trials.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
+                        help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    trials.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
+                        help=f"cube side of the model (m; default: {spec.model_l:g})")
+    trials.add_argument("--samples", type=positive_int, default=spec.samples, metavar="N",
+                        help=f"robust variants: sampled models (default: {spec.samples})")
+    trials.add_argument("--feedback", action="store_true",
+                        help="low-level PD tracking of the plan's ball motion between steps")
+    trials.add_argument("--contact-model", default="anitescu", metavar="MODEL",
+                        help="contact model of the controller's LCS: anitescu (default) or "
+                             "stewart-trinkle")
+    trials.add_argument("--trials", type=positive_int, default=20, metavar="N",
+                        help="episodes (default: 20)")
+    trials.add_argument("--seed", type=nonnegative_int, default=0, metavar="S",
+                        help="seed of the randomization (default: 0)")
+    trials.add_argument("--duration", type=positive_float, default=3.0, metavar="S",
+                        help="seconds per episode, a multiple of dt (default: 3; success "
+                             "needs at least 3)")
+    trials.add_argument("--hold-time", type=positive_float, default=1.0, metavar="S",
+                        help="seconds the angle must stay in the band at the end (default: 1)")
+    add_executor(trials, "trials")
+    add_results(trials, "writes ROOT/closed_loop/trials/<controller label>/")
+    add_quiet(trials)
+    trials.set_defaults(handler=cmd_closed_loop_trials)
+
+    suite = sub.add_parser("closed-loop-suite",
+                           help="closed-loop suites: configurations x randomized trials",
+                           description="Run every configuration of a closed-loop suite on "
+                                       "the same randomized trials (resumable) and write its "
+                                       "report: success rates with Wilson 95% intervals, "
+                                       "success against the model's cube side, metric "
+                                       "distributions and the seed's claims tested.")
+    suite.add_argument("--suite", choices=tuple(CLOSED_LOOP_SUITES), default="quick",
+                       help="closed-loop suite (default: quick)")
+    suite.add_argument("--trials", type=positive_int, default=None, metavar="N",
+                       help="trials per configuration (default: the suite's, "
+                            + ", ".join(f"{name} {s.trials}"
+                                        for name, s in CLOSED_LOOP_SUITES.items())
+                            + "); trial i is the same episode whatever N, so a larger N "
+                              "reuses the stored trials")
+    add_executor(suite, "runs")
+    add_results(suite, "writes ROOT/closed_loop/<suite>/")
+    suite.add_argument("--no-render", action="store_true", help="skip the animation")
+    add_quiet(suite)
+    suite.set_defaults(handler=cmd_closed_loop_suite)
+
+    sweep = sub.add_parser("sweep", help="failure-mode map: dt x rho schedule x Q_box x l",
+                           description="C3+ over a grid of hyperparameters; the report maps "
+                                       "each combination to its failure mode.")
+    add_list(sweep, "--dt", metavar="S", item=positive_float, default=SWEEP_DTS,
+             help="control periods (s)")
+    add_list(sweep, "--rho-schedule", metavar="SCHEDULE", choices=RHO_SCHEDULES,
+             default=SWEEP_SCHEDULES, help="ADMM weight schedules")
+    add_list(sweep, "--q-box", metavar="Q", item=positive_float, default=SWEEP_Q_BOXES,
+             help="cube-pose weights Q_box")
+    add_list(sweep, "--model-l", metavar="L", item=positive_float, default=SWEEP_MODEL_LS,
+             help="cube sides of the model (m)")
+    sweep.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
+                       help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    add_executor(sweep, "runs")
+    add_results(sweep, "writes ROOT/closed_loop/sweep/")
+    add_quiet(sweep)
+    sweep.set_defaults(handler=cmd_sweep)

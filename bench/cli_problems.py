@@ -1,10 +1,11 @@
 """``c3bench problems generate`` / ``list`` / ``import`` / ``export``: the instance commands
 (:mod:`bench.cli`).
 
-``import`` turns the user's own convex QPs (qpsolvers' ``.npz`` files, or a module yielding
-``qpsolvers.Problem`` objects) into a directory of ``qp`` instances with a manifest
-(:mod:`c3bench.problems.importers`); ``export`` writes instances in qpsolvers' format
-(:mod:`c3bench.problems.exporters`).
+``import`` turns the user's own problems (qpsolvers' ``.npz`` files, CasADi ``conic`` problems
+saved by :func:`c3bench.problems.conic.save_conic`, LCPs as ``F``/``q`` ``.npz`` files, or a
+module yielding ``qpsolvers.Problem`` objects) into a directory of ``qp`` / ``lcp_general``
+instances with a manifest (:mod:`c3bench.problems.importers`); ``export`` writes instances in
+qpsolvers' format with a qpbenchmark test set (:mod:`c3bench.problems.exporters`).
 
 Also the instance helpers other commands share: :func:`capture_for` (the ADMM-iterate source
 of a generation), :func:`read_instance_dir` (a directory's instances under the ``--skip-bad``
@@ -19,6 +20,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from c3bench.bench import cli_checks
@@ -60,17 +62,34 @@ def read_instance_dir(directory: Path, skip_bad: bool) -> list[Problem]:
     return found.problems
 
 
+INEQUALITIES_HELP = ("inequalities = inequality rows + finite bound entries (lb and ub "
+                     "counted separately)")
+"""What the ``inequalities`` column of ``problems list`` counts."""
+
+
+def inequality_count(problem: Problem) -> int:
+    """Inequalities of ``problem`` in any form: ``G`` rows plus finite entries of ``lb`` and of
+    ``ub`` (a variable bounded on both sides counts twice), i.e. the rows of
+    ``[G; I; -I] z <= [h; ub; -lb]`` after dropping infinite sides."""
+    finite = sum(int(np.isfinite(bound).sum()) for bound in (problem.lb, problem.ub)
+                 if bound is not None)
+    return problem.n_ineq + finite
+
+
 def instance_table(directory: Path, skip_bad: bool = False) -> pd.DataFrame:
     """Per family and variant: count, variables, equality and inequality rows, bounded
-    variables, pairs.
+    variables, pairs, and ``inequalities`` (:func:`inequality_count`: inequality rows plus
+    finite bound entries, so the bounded variants, which keep their limits as bounds, show
+    them).
 
     The variant is ``meta["variant"]`` (``bounded`` / ``equality`` for the QP steps, ``c3`` /
     ``c3plus`` for projections, ``bounded`` for an mpcc built with limits; ``-`` where an
     instance has none). Sizes that vary within a group are shown as ``min-max``.
     """
     columns = ["variables", "equality_rows", "inequality_rows", "bounded_variables",
-               "complementarity_pairs"]
-    rows = [dict(p.summary(), variant=str(p.meta.get("variant", "-")))
+               "complementarity_pairs", "inequalities"]
+    rows = [dict(p.summary(), variant=str(p.meta.get("variant", "-")),
+                 inequalities=inequality_count(p))
             for p in read_instance_dir(directory, skip_bad)]
     if not rows:
         return pd.DataFrame(columns=["family", "variant", "count", *columns])
@@ -87,7 +106,8 @@ def instance_table(directory: Path, skip_bad: bool = False) -> pd.DataFrame:
 def cmd_problems_generate(args: argparse.Namespace) -> int:
     """Write a suite's instances and print their table."""
     from c3bench.problems.config import load_config
-    from c3bench.problems.suites import check_target, generate_suite
+    from c3bench.problems.suite_files import check_target
+    from c3bench.problems.suites import generate_suite
 
     cli_checks.check_output_path("--out", args.out)
     try:
@@ -116,9 +136,10 @@ def cmd_problems_list(args: argparse.Namespace) -> int:
 
 
 def cmd_problems_import(args: argparse.Namespace) -> int:
-    """Import the user's QPs into ``--out`` as ``qp`` instances and print their table."""
+    """Import the user's problems into ``--out`` as ``qp`` (``lcp_general`` for an LCP file)
+    instances and print their table."""
     from c3bench.problems.importers import read_module, read_npz_source, write_imported
-    from c3bench.problems.suites import check_target, staging_dir, swap_in
+    from c3bench.problems.suite_files import check_target, staging_dir, swap_in
 
     if (args.source is None) == (args.module is None):
         raise InputError("give either SRC (an .npz file or a directory of them) or "
@@ -160,7 +181,8 @@ def cmd_problems_export(args: argparse.Namespace) -> int:
     for name, reason in sorted(export.skipped.items()):
         print(f"left out {name}: {reason}", file=sys.stderr)
     print(f"exported {len(export.written)} instances to {args.out} (qpsolvers.Problem.load "
-          f"reads each .npz; {export.index.name} lists them with their objective offsets)")
+          f"reads each .npz; {export.index.name} lists them with their objective offsets; "
+          f"{export.test_set.name} is their qpbenchmark test set)")
     return EXIT_OK if export.written else EXIT_ERROR
 
 
@@ -170,10 +192,12 @@ def _add_import_export(problems_sub: Any) -> None:
 
     imports = problems_sub.add_parser(
         "import", help="bring your own convex QPs (qpsolvers' form) as qp instances",
-        description="Read .npz files with qpsolvers' Problem keys (P q G h A b lb ub), or a "
+        description="Read .npz files with qpsolvers' Problem keys (P q G h A b lb ub), "
+                    "CasADi conic names (h g a lba uba lbx ubx, as written by "
+                    "c3bench.problems.conic.save_conic) or an LCP's F and q, or a "
                     "module whose functions or classes yield qpsolvers.Problem objects, and "
-                    "write them as instances of the qp family (with a manifest) that "
-                    "`c3bench run --instances DIR` runs.")
+                    "write them as instances of the qp family (lcp_general for an LCP; with "
+                    "a manifest) that `c3bench run --instances DIR` runs.")
     imports.add_argument("source", nargs="?", default=None, metavar="SRC",
                          help="an .npz file or a directory of them (searched recursively)")
     imports.add_argument("--module", default=None, metavar="MODULE",
@@ -186,8 +210,9 @@ def _add_import_export(problems_sub: Any) -> None:
     export = problems_sub.add_parser(
         "export", help="write instances for other tools (qpsolvers.Problem.load)",
         description="Write each instance without complementarity pairs as OUT/<name>.npz in "
-                    "qpsolvers' Problem.save layout, and OUT/index.json with each one's "
-                    "objective offset.")
+                    "qpsolvers' Problem.save layout, OUT/index.json with each one's "
+                    "objective offset, and OUT/c3bench_test_set.py, the qpbenchmark test set "
+                    "over them (qpbenchmark --results-path R.csv OUT/c3bench_test_set.py run).")
     export.add_argument("directory", metavar="DIR", help="directory holding instances")
     export.add_argument("--out", required=True, metavar="OUT", help="directory to write")
     export.add_argument("--format", choices=FORMATS, default=FORMATS[0],
@@ -222,7 +247,7 @@ def add_problems(sub: Any) -> None:
     listing = problems_sub.add_parser(
         "list", help="table of instances by family and variant",
         description="Per family and variant: count, variables, equality and inequality rows, "
-                    "bounded variables, pairs.")
+                    "bounded variables, pairs, and " + INEQUALITIES_HELP + ".")
     listing.add_argument("directory", metavar="DIR", help="directory holding instances")
     add_skip_bad(listing)
     listing.set_defaults(handler=cmd_problems_list)

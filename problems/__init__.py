@@ -25,6 +25,7 @@ CORE_MODULES: tuple[str, ...] = (
     "c3bench.problems.limits",
     "c3bench.problems.lcs",
     "c3bench.problems.mpc",
+    "c3bench.problems.instance_contract",
     "c3bench.problems.instance",
     "c3bench.problems.families",
     "c3bench.problems.capture",

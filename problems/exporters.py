@@ -11,6 +11,11 @@ our instances' objective minus its constant ``objective_offset``.
 ``OUT/index.json`` lists each exported instance (name, family, file, ``objective_offset``,
 so that ``f = 1/2 x^T P x + q^T x + objective_offset`` is our objective) and the instances
 left out with the reason (complementarity pairs have no place in qpsolvers' form).
+
+``OUT/c3bench_test_set.py`` (:data:`SHIM_NAME`) defines the qpbenchmark test set class
+``C3BenchTestSet`` over ``OUT`` (:mod:`c3bench.bench.qpbenchmark_set`), so that
+``qpbenchmark --results-path OUT/results.csv OUT/c3bench_test_set.py run`` benchmarks the
+exported instances in qpbenchmark.
 """
 
 from __future__ import annotations
@@ -30,6 +35,23 @@ FORMATS: tuple[str, ...] = ("qpsolvers",)
 """Export formats."""
 INDEX = "index.json"
 """The export's table of contents (beside the ``.npz`` files)."""
+SHIM_NAME = "c3bench_test_set.py"
+"""The file an export writes beside the instances for qpbenchmark's command line
+(which loads class ``C3BenchTestSet`` from a file ``c3bench_test_set.py``)."""
+SHIM_SOURCE = '''"""qpbenchmark test set over this directory (written by `c3bench problems export`).
+
+Run: qpbenchmark --results-path results.csv c3bench_test_set.py run --solver clarabel
+"""
+
+from pathlib import Path
+
+from c3bench.bench.qpbenchmark_set import qpbenchmark_class
+
+
+class C3BenchTestSet(qpbenchmark_class()):  # the class qpbenchmark loads from this file
+    directory = Path(__file__).resolve().parent
+'''
+"""The source of :data:`SHIM_NAME`."""
 
 
 @dataclass
@@ -44,11 +66,14 @@ class Export:
         ``name -> reason`` of the instances left out.
     index
         The path of ``index.json``.
+    test_set
+        The path of the qpbenchmark test-set file (:data:`SHIM_NAME`).
     """
 
     written: list[Path] = field(default_factory=list)
     skipped: dict[str, str] = field(default_factory=dict)
     index: Path = Path(INDEX)
+    test_set: Path = Path(SHIM_NAME)
 
 
 def qpsolvers_arrays(problem: Problem) -> dict[str, Any]:
@@ -76,7 +101,7 @@ def exportable(problem: Problem) -> str:
 
 def export_qpsolvers(problems: list[Problem], out: Path) -> Export:
     """Write ``problems`` (those :func:`exportable`) into ``out`` (see the module docstring)."""
-    result = Export(index=out / INDEX)
+    result = Export(index=out / INDEX, test_set=out / SHIM_NAME)
     entries: list[dict[str, Any]] = []
     for problem in problems:
         reason = exportable(problem)
@@ -91,4 +116,5 @@ def export_qpsolvers(problems: list[Problem], out: Path) -> Export:
     index = {"format": "qpsolvers", "instances": entries, "skipped": result.skipped}
     atomic_write_bytes(result.index,
                        (json.dumps(index, indent=2, sort_keys=True) + "\n").encode())
+    atomic_write_bytes(result.test_set, SHIM_SOURCE.encode())
     return result

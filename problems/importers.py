@@ -2,21 +2,29 @@
 
 Two sources (``c3bench problems import``):
 
-* ``.npz`` files with the keys of ``qpsolvers.Problem.save`` (``P q G h A b lb ub``; only
-  ``P`` and ``q`` are required, a missing key or one stored as ``None`` means the block is
-  absent), one file or a directory of them (searched recursively);
+* ``.npz`` files, one file or a directory of them (searched recursively), each recognised by
+  its keys:
+
+  - qpsolvers' ``Problem.save`` keys (``P q G h A b lb ub``; only ``P`` and ``q`` are
+    required, a missing key or one stored as ``None`` means the block is absent): a ``qp``
+    instance;
+  - CasADi ``conic`` names (``h g a lba uba lbx ubx``, written by
+    :func:`c3bench.problems.conic.save_conic`; a lower-case ``g`` and no ``q``): converted
+    by :func:`c3bench.problems.conic.conic_to_qpsolvers` into a ``qp`` instance;
+  - ``F`` and ``q``: the LCP ``0 <= lam perp F lam + q >= 0`` with any square ``F``, an
+    ``lcp_general`` instance (:func:`c3bench.problems.families.lcp_general`);
 * a Python module (``--module``) defining a qpbenchmark-style test set: a function, or a
   class whose instances are iterable, yielding ``qpsolvers.Problem`` objects (or
   ``(name, problem)`` pairs; a problem's ``name`` attribute is used when it has one).
 
-Each problem is checked (finite, shapes that fit, ``P`` symmetric after
+Each QP is checked (finite, shapes that fit, ``P`` symmetric after
 ``P <- (P + P^T) / 2``, which leaves the objective unchanged, and positive semi-definite) and
 becomes a :class:`~c3bench.problems.instance.Problem` of the ``qp`` family with metadata
 ``{"source": ..., "imported": True}``. A file that is not such a problem raises
 :class:`~c3bench.problems.errors.InputError` naming the file (or the module and the item).
 
-Part of the plant-free core's dependencies: numpy only (qpsolvers is not imported here; a
-module's objects are read by their attributes).
+Part of the plant-free core's dependencies: numpy only (neither qpsolvers nor CasADi is
+imported here; a module's objects are read by their attributes).
 """
 
 from __future__ import annotations
@@ -31,12 +39,16 @@ from typing import Any
 
 import numpy as np
 
+from c3bench.problems.conic import conic_to_qpsolvers, is_conic
 from c3bench.problems.errors import InputError
+from c3bench.problems.families import lcp_general
 from c3bench.problems.instance import MANIFEST, Problem, atomic_write_bytes, save_problem
 from c3bench.problems.names import Family
 
 QPSOLVERS_KEYS: tuple[str, ...] = ("P", "q", "G", "h", "A", "b", "lb", "ub")
 """The keys of ``qpsolvers.Problem.save`` / ``Problem.load``."""
+LCP_KEYS: tuple[str, ...] = ("F", "q")
+"""The keys of an ``.npz`` holding an LCP ``0 <= lam perp F lam + q >= 0``."""
 PSD_TOLERANCE = 1e-9
 """Smallest eigenvalue of ``P`` allowed, relative to its largest magnitude (convexity)."""
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.+]+")
@@ -112,23 +124,48 @@ def _check_convex(P: np.ndarray) -> None:
 
 
 def read_npz(path: Path) -> Problem:
-    """One ``.npz`` in qpsolvers' keys as a ``qp`` instance named after the file."""
+    """One ``.npz`` as an instance named after the file, its form told by its keys (a qpsolvers
+    problem, a saved CasADi conic problem or an LCP: see the module docstring)."""
     try:
         with np.load(path, allow_pickle=False) as stored:
-            unknown = sorted(set(stored.files) - set(QPSOLVERS_KEYS))
-            arrays = {key: _optional(stored, key) for key in QPSOLVERS_KEYS}
-    except InputError:
-        raise
+            arrays = {key: _optional(stored, key) for key in stored.files}
     except Exception as error:  # any failure to decode is a bad file
         raise InputError(f"{path}: unreadable, truncated or not an .npz "
                          f"({type(error).__name__}: {error})") from error
+    name, keys = instance_name(path.stem), set(arrays)
+    if "F" in keys:
+        return _read_lcp(name, arrays, path)
+    if is_conic(keys):
+        given = {key: value for key, value in arrays.items() if value is not None}
+        try:
+            qp_arrays = conic_to_qpsolvers(given)
+        except InputError as error:
+            raise InputError(f"{path}: not a CasADi conic QP ({error})") from error
+        return qp_problem(name, qp_arrays, str(path))
+    unknown = sorted(keys - set(QPSOLVERS_KEYS))
     if unknown:
         raise InputError(f"{path}: keys {', '.join(unknown)} are not qpsolvers' Problem keys "
-                         f"({' '.join(QPSOLVERS_KEYS)})")
-    if arrays["q"] is None:
+                         f"({' '.join(QPSOLVERS_KEYS)}), CasADi conic's (h g a lba uba lbx "
+                         f"ubx) or an LCP's (F q)")
+    if arrays.get("q") is None:
         raise InputError(f"{path}: missing key 'q' (qpsolvers' Problem keys: "
                          f"{' '.join(QPSOLVERS_KEYS)})")
-    return qp_problem(instance_name(path.stem), arrays, str(path))
+    return qp_problem(name, {key: arrays.get(key) for key in QPSOLVERS_KEYS}, str(path))
+
+
+def _read_lcp(name: str, arrays: dict[str, np.ndarray | None], path: Path) -> Problem:
+    """The ``lcp_general`` instance of an ``.npz`` holding exactly ``F`` and ``q``."""
+    F, q = arrays.get("F"), arrays.get("q")
+    if set(arrays) != set(LCP_KEYS) or F is None or q is None:
+        raise InputError(f"{path}: an LCP file holds exactly the keys F and q, got "
+                         f"{' '.join(sorted(arrays))}")
+    try:
+        return lcp_general(name, np.asarray(F, dtype=np.float64),
+                           np.asarray(q, dtype=np.float64).reshape(-1),
+                           meta={"source": str(path), "imported": True})
+    except (TypeError, ValueError) as error:  # InputError is a ValueError
+        raise InputError(f"{path}: not an LCP 0 <= lam perp F lam + q >= 0 ({error})") \
+            from error
 
 
 def npz_files(source: Path) -> list[Path]:

@@ -25,7 +25,7 @@ A suite is generated in three steps:
 
 A suite is written into a hidden sibling folder and swapped in whole when complete, so a
 directory never mixes instances of two generations and an interrupted generation leaves the
-previous suite as it was.
+previous suite as it was (:mod:`problems.suite_files`).
 
 The ADMM iterates ``(delta, w)`` behind ``c3plus_qp``/``c3_qp``/``projection`` come from a
 *capture* function (:mod:`c3bench.problems.capture`, which also holds the suite specifications
@@ -41,8 +41,6 @@ This module runs the plant (MuJoCo); the instance builders it calls
 from __future__ import annotations
 
 import json
-import os
-import secrets
 import shutil
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
@@ -64,7 +62,6 @@ from c3bench.problems.capture import (
 from c3bench.problems.config import Config, load_config
 from c3bench.problems.errors import InputError
 from c3bench.problems.instance import (
-    FAMILIES,
     MANIFEST,
     Problem,
     atomic_write_bytes,
@@ -83,6 +80,20 @@ from c3bench.problems.scene import (
     check_variant,
     home_state,
 )
+from c3bench.problems.suite_files import (  # re-exported: the suite's directory
+    GENERATOR_VERSION,
+    check_target,
+    out_of_date,
+    staging_dir,
+    swap_in,
+)
+
+__all__ = [
+    "CONTACT_BAND", "CONTACT_CHANGE", "CONTACT_THRESHOLD", "GENERATOR_VERSION", "PushRecord",
+    "build_state_instances", "check_target", "choose_states", "contact_changes", "general_lcps",
+    "generate_suite", "out_of_date", "qp_limits", "sample_states", "scripted_push",
+    "staging_dir", "state_tag", "swap_in",
+]
 
 CONTACT_THRESHOLD = 1e-3
 """Gap (m) below which a contact counts as touching when finding contact changes."""
@@ -346,24 +357,6 @@ def _trajectory_json(index: int, trajectory: Trajectory, cfg: Config) -> dict[st
             "ball_start": [float(v) for v in start], "push_height": trajectory.push_height}
 
 
-GENERATOR_VERSION = 2
-"""Version of what :func:`generate_suite` writes for a given spec and config; raised whenever
-the instances change (2: ball-table contact, bounded and equality variants, several pushes).
-A stored suite of another version (or of another spec) is out of date
-(:func:`out_of_date`)."""
-
-
-def out_of_date(spec: SuiteSpec, manifest: dict[str, Any]) -> str:
-    """Why a stored suite's ``manifest`` was not written by today's generator for ``spec``
-    (``""`` when it was): another generator version, or another suite definition."""
-    stored = manifest.get("generator_version")
-    if stored != GENERATOR_VERSION:
-        return f"written by suite generator version {stored} (now {GENERATOR_VERSION})"
-    if json.loads(json.dumps(manifest.get("suite"))) != json.loads(json.dumps(spec.to_json())):
-        return f"the definition of suite {spec.name!r} changed"
-    return ""
-
-
 def state_tag(spec: SuiteSpec, scene: str, state_index: int, trajectory: int) -> str:
     """The tag of a state in instance names: ``s<step>t<push>``, plus ``_<scene>`` for a
     state of one of ``spec.extra_scenes``."""
@@ -494,81 +487,3 @@ def _write_manifest(spec: SuiteSpec, cfg: Config, out: Path, tally: _Tally,
         manifest["limits_by_scene"] = limits
     atomic_write_bytes(out / MANIFEST,
                        (json.dumps(manifest, indent=2, sort_keys=True) + "\n").encode())
-
-
-# --- replacing a suite as a whole ----------------------------------------------------------------
-def check_target(out: Path) -> None:
-    """Refuse an instance directory that a generation must not replace.
-
-    ``out`` may be absent, empty, or hold a suite (``manifest.json``, family folders and
-    temporary files of an interrupted write only); a file, the current directory (or one
-    above it) and a directory holding anything else raise :class:`InputError`.
-    """
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a directory")
-    if not out.is_dir():
-        return
-    here, target = Path.cwd().resolve(), out.resolve()
-    if target == here or target in here.parents:
-        raise InputError(f"{out}: is the current directory or above it; generate into a "
-                         "subdirectory")
-    foreign = sorted(child.name for child in out.iterdir()
-                     if not (child.name == MANIFEST
-                             or (child.is_dir() and child.name in FAMILIES)
-                             or (child.name.startswith(".") and child.name.endswith(".tmp"))))
-    if foreign:
-        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-        raise InputError(f"{out}: holds files that are not a suite's instances ({shown}); "
-                         "generate into a new or empty directory")
-
-
-def staging_dir(out: Path) -> Path:
-    """A new hidden sibling folder of ``out`` to generate into (leftovers of dead processes
-    removed first)."""
-    parent = out.absolute().parent
-    parent.mkdir(parents=True, exist_ok=True)
-    for leftover in parent.glob(f".{out.name}.*-*-*"):
-        kind, pid = leftover.name[len(out.name) + 2:].split("-", 2)[:2]
-        if kind in ("generating", "old") and pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(leftover, ignore_errors=True)
-    staging = parent / f".{out.name}.generating-{os.getpid()}-{secrets.token_hex(4)}"
-    staging.mkdir()
-    return staging
-
-
-def _alive(pid: int) -> bool:
-    """Whether a process ``pid`` runs on this machine."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def swap_in(staging: Path, out: Path) -> None:
-    """Make the complete suite in ``staging`` the content of ``out``.
-
-    Absent ``out``: one rename. ``out`` holding a suite: rename it aside, rename ``staging``
-    in, delete the old one (put back if the second rename fails). Empty ``out``: move the
-    family folders in, the manifest last (a partial move has no manifest, so a run
-    regenerates it).
-    """
-    if not out.exists():
-        os.rename(staging, out)
-        return
-    if not any(out.iterdir()):
-        children = sorted(staging.iterdir(), key=lambda child: child.name == MANIFEST)
-        for child in children:
-            os.rename(child, out / child.name)
-        staging.rmdir()
-        return
-    old = staging.with_name(f".{out.name}.old-{os.getpid()}-{secrets.token_hex(4)}")
-    os.rename(out, old)
-    try:
-        os.rename(staging, out)
-    except BaseException:
-        os.rename(old, out)
-        raise
-    shutil.rmtree(old, ignore_errors=True)

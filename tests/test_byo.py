@@ -13,6 +13,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import clarabel
 import numpy as np
@@ -23,10 +24,11 @@ import scipy.sparse as sp
 from c3bench.bench import store
 from c3bench.bench.cli import main
 from c3bench.bench.metrics import required_residuals
+from c3bench.problems.capture import SuiteSpec
 from c3bench.problems.errors import InstanceFormatError
 from c3bench.problems.instance import Problem, load_instances, load_problem, save_problem
 from c3bench.problems.names import QP_FAMILIES, Family
-from c3bench.problems.suites import SuiteSpec, generate_suite
+from c3bench.problems.suites import generate_suite
 from c3bench.solvers import registry
 from c3bench.solvers.base import settings_for
 
@@ -38,7 +40,7 @@ TINY = SuiteSpec("tiny", n_states=1, admm_iterations=(0,), projection_iterations
 SOLVERS = "clarabel,osqp,daqp,piqp"
 
 
-def external_qp(seed: int, n: int = 5) -> dict[str, np.ndarray]:
+def external_qp(seed: int, n: int = 5) -> dict[str, Any]:
     """A convex QP with equality and inequality rows and bounds, some of them active."""
     rng = np.random.default_rng(seed)
     M = rng.standard_normal((n, n))
@@ -74,7 +76,7 @@ def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]
 
 
 def _import_and_run(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                    problems: dict[str, dict[str, np.ndarray]]) -> tuple[Path, tuple[str, ...]]:
+                    problems: dict[str, dict[str, Any]]) -> tuple[Path, tuple[str, ...]]:
     """Write ``problems`` in qpsolvers' form, import them, delete the manifest (any directory
     of instances runs), run them; returns the suite folder and the run's arguments."""
     source = tmp_path / "mine"
@@ -221,7 +223,8 @@ def test_bad_import_file_exits_2_naming_it(tmp_path: Path, capsys: pytest.Captur
 
 
 def test_generic_families_load_without_cube_metadata(tmp_path: Path) -> None:
-    bare = {"P": np.eye(2), "q": np.ones(2), "lb": np.zeros(2), "ub": np.ones(2)}
+    bare: dict[str, Any] = {"P": np.eye(2), "q": np.ones(2), "lb": np.zeros(2),
+                            "ub": np.ones(2)}
     for family in (Family.QP, Family.MPCC, Family.LCP):
         save_problem(Problem(f"bare_{family}", family, **bare), tmp_path)
         assert load_problem(tmp_path / f"bare_{family}.json").meta == {}
@@ -262,3 +265,23 @@ def test_run_instances_refuses_what_is_not_instances(tmp_path: Path,
     code, _, err = _cli(capsys, "run", "--instances", str(tmp_path / "absent"))
     assert code == 2 and "not a directory" in err
     assert not (tmp_path / "r").exists()
+
+
+def test_list_counts_bounds_as_inequalities(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    qp = external_qp(5)
+    qp["ub"][0] = np.inf  # one side infinite: 5 finite lb + 4 finite ub
+    source = tmp_path / "src"
+    source.mkdir()
+    np.savez(source / "mixed.npz", **qp)
+    out = tmp_path / "instances"
+    assert _cli(capsys, "problems", "import", str(source), "--out", str(out))[0] == 0
+    code, text, _ = _cli(capsys, "problems", "list", str(out))
+    assert code == 0
+    header, row = (line.split() for line in text.splitlines()[:2])
+    values = dict(zip(header, row, strict=True))
+    assert values["inequality_rows"] == "2" and values["bounded_variables"] == "5"
+    assert values["inequalities"] == str(2 + 5 + 4)
+    main(["problems", "list", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "inequalities = inequality rows + finite bound entries" in help_text

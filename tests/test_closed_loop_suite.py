@@ -15,6 +15,13 @@ import pytest
 
 from c3bench.bench.cli_closed_loop import suite_trials
 from c3bench.bench.closed_loop import ControllerSpec
+from c3bench.bench.closed_loop_configs import (
+    CLOSED_LOOP_SUITES,
+    L_CURVE,
+    ClosedLoopSuite,
+    Configuration,
+    reference_ablation,
+)
 from c3bench.bench.closed_loop_figures import (
     distributions_figure,
     l_curve_figure,
@@ -22,13 +29,8 @@ from c3bench.bench.closed_loop_figures import (
 )
 from c3bench.bench.closed_loop_report import configuration_results
 from c3bench.bench.closed_loop_suite import (
-    CLOSED_LOOP_SUITES,
-    L_CURVE,
     Case,
-    ClosedLoopSuite,
-    Configuration,
     SuiteRun,
-    reference_ablation,
     run_cases,
     sweep_cases,
     sweep_grid,
