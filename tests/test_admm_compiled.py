@@ -221,3 +221,38 @@ def test_non_finite_inputs_raise(push: SimpleNamespace) -> None:
     w[0, 3, 0] = np.inf
     with pytest.raises(KernelFailure, match="non-finite"):
         kernel.iterate(plan[0], delta, w)
+
+
+@pytest.mark.parametrize("precision", list(Precision))
+def test_fused_step_is_the_iteration_and_its_dual_update(push: SimpleNamespace,
+                                                         precision: Precision) -> None:
+    """``CompiledC3Plus.fused`` (one compiled call) returns what the loop's own
+    ``admm_iteration`` (kernel step, then the numpy ``dual_update``) returns, and a whole control
+    step through it equals the numpy Riccati kernel's step."""
+    from c3bench.solvers.admm.compiled_solver import CompiledC3Plus
+    from c3bench.solvers.admm.kernel import StepInputs
+    from c3bench.solvers.admm.loop import admm_iteration, initial_iterates
+    from c3bench.solvers.admm.options import C3Options
+
+    lcs, n = push.batches[16], 16
+    options = C3Options(keep_iterates=False)
+    solver = CompiledC3Plus(push.mpc, options, precision=precision)
+    solver.bind(lcs)
+    rng = np.random.default_rng(3)
+    p = rng.uniform(0.5, 1.5, n)
+    solver.start(StepInputs(push.x0, p / p.sum(), True, None))
+    delta, w = initial_iterates(solver.layout, push.x0, n, None, None, solver.dtype)
+    w = (w + 0.1 * rng.normal(size=w.shape)).astype(solver.dtype)
+    rho = dict(options.rho0)
+    fused = solver.fused(solver, rho, delta, w)
+    looped = admm_iteration(solver, rho, delta, w)
+    for name, ours, theirs in zip(("z", "terminal", "delta", "w"), fused, looped, strict=True):
+        assert ours.dtype == solver.dtype, name
+        np.testing.assert_array_equal(ours, theirs, err_msg=name)
+    assert _relative(fused[3], w + fused[0] - fused[2]) == 0.0
+    if precision == Precision.FLOAT64:
+        got = CompiledC3Plus(push.mpc, options).solve(lcs, push.x0)
+        expected = FastC3Plus(push.mpc, options).solve(lcs, push.x0)
+        for ours, theirs in ((got.delta, expected.delta), (got.w, expected.w),
+                             (got.u, expected.u)):
+            assert _relative(ours, theirs) <= TOLERANCE[precision]

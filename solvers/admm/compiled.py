@@ -4,17 +4,20 @@ One ADMM loop (dual update, residuals, rho schedule, stopping, output) calls a *
 iteration; :class:`CompiledC3PlusKernel` is the compiled one for the C3+ variant. Its maths is
 :class:`solvers.fast.FastC3Plus`'s (eliminate ``eta``, Jacobi-scaled Riccati recursion split
 into a factorisation and linear passes, closed-form projection, shared-input mean; see the
-module docstrings of :mod:`solvers.fast` and :mod:`solvers.admm.compiled_kernels`), compiled
+module docstrings of :mod:`solvers.fast`, :mod:`solvers.admm.compiled_kernels` and
+:mod:`solvers.admm.compiled_passes`), compiled
 with numba (Lam, Pitrou & Seibert, "Numba: a LLVM-based Python JIT compiler", LLVM-HPC 2015):
 
 * :meth:`CompiledC3PlusKernel.start` converts the LCS batch to the working precision into
   preallocated arrays and, for a geometric schedule (``planned_rhos`` known before the first
   iteration), factorises every planned rho for every sample in ONE compiled call into
   preallocated arrays (rho values x samples x T x ...);
-* :meth:`CompiledC3PlusKernel.iterate` runs the gradient, both linear passes, ``eta``, the
-  projection of ``v = z + w`` and (shared inputs, ``n > 1``) ``delta_u = sum_j p_j v_{j,u}``
-  in ONE compiled call; a rho outside the plan is factorised on the fly (one call) and kept
-  in a small cache keyed by the rho values.
+* :meth:`CompiledC3PlusKernel.step` runs the gradient, both linear passes, ``eta``, the
+  projection of ``v = z + w``, (shared inputs, ``n > 1``) ``delta_u = sum_j p_j v_{j,u}``
+  and the loop's dual update (:func:`c3bench.solvers.admm.loop.dual_update`, compiled) in
+  ONE compiled call (:meth:`~CompiledC3PlusKernel.iterate` is the same call without the
+  dual); a rho outside the plan is factorised on the fly (one call) and kept in a small
+  cache keyed by the rho values.
 
 JIT compilation happens once per process (and is cached on disk); :func:`warm_up` compiles
 every signature (float64 and float32) on a tiny problem. ``compile_seconds`` is the JIT
@@ -43,6 +46,7 @@ from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC
 from c3bench.problems.names import BLOCKS, Block, Precision
 from c3bench.solvers.admm import compiled_kernels as kernels
+from c3bench.solvers.admm import compiled_passes as passes
 from c3bench.solvers.admm.kernel import KernelFailure
 from c3bench.solvers.fast import RiccatiOptions
 
@@ -56,9 +60,10 @@ OFF_PLAN_CACHE = 4
 class CompiledFactors:
     """Factorisations of ``m`` rho values for ``n`` samples (:func:`kernels.factorize_batch`).
 
-    ``K`` (m, n, T, nv, nx), ``L`` (m, n, T, nv, nv), ``Sd`` (m, n, T, nx), ``D`` (m, n, ny),
-    ``ABd`` (m, n, nx, ny + 1) the scaled ``[A B_v d]``; ``failed`` (m, n): -1 or the time
-    step whose Cholesky factorisation failed.
+    ``K`` (m, T, nv, nx, n), ``L`` (m, T, nv, nv, n), ``Sd`` (m, T, nx, n), ``D`` (m, ny, n),
+    ``ABd`` (m, nx, ny + 1, n) the scaled ``[A B_v d]`` (samples last: the linear passes work
+    the samples as vector lanes); ``failed`` (m, n): -1 or the time step whose Cholesky
+    factorisation failed.
     """
 
     K: np.ndarray
@@ -71,15 +76,15 @@ class CompiledFactors:
     @classmethod
     def empty(cls, m: int, n: int, T: int, nx: int, nv: int, dtype: np.dtype[Any]
               ) -> CompiledFactors:
-        return cls(K=np.empty((m, n, T, nv, nx), dtype), L=np.zeros((m, n, T, nv, nv), dtype),
-                   Sd=np.empty((m, n, T, nx), dtype), D=np.empty((m, n, nx + nv), dtype),
-                   ABd=np.empty((m, n, nx, nx + nv + 1), dtype),
+        return cls(K=np.empty((m, T, nv, nx, n), dtype), L=np.zeros((m, T, nv, nv, n), dtype),
+                   Sd=np.empty((m, T, nx, n), dtype), D=np.empty((m, nx + nv, n), dtype),
+                   ABd=np.empty((m, nx, nx + nv + 1, n), dtype),
                    failed=np.full((m, n), -1, np.int64))
 
     @property
     def shape(self) -> tuple[int, ...]:
         """``(m, n, T)``."""
-        return tuple(self.K.shape[:3])
+        return (self.K.shape[0], self.K.shape[4], self.K.shape[1])
 
 
 def rho_key(rho: Mapping[str, float]) -> tuple[float, ...]:
@@ -207,35 +212,42 @@ class CompiledC3PlusKernel:
         Raises :class:`KernelFailure` when the factorisation of ``rho`` failed or the QP
         solution is not finite.
         """
+        z_steps, z_terminal, new_delta, _ = self.step(rho, delta, w)
+        return z_steps, z_terminal, new_delta
+
+    def step(self, rho: Mapping[str, float], delta: np.ndarray, w: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One whole ADMM iteration in one compiled call: :meth:`iterate`'s three arrays and
+        the dual update ``new_w = w + z_steps - new_delta`` (the loop's
+        :func:`c3bench.solvers.admm.loop.dual_update`, compiled); new arrays every call."""
         key = rho_key(rho)
         entry = self._entries.get(key)
         if entry is None:
             entry = self._off_plan_entry(key, rho)
         if entry.failure is not None:
             raise KernelFailure("QP factorisation failed", entry.failure)
-        if delta.dtype != self.dtype or not delta.flags.c_contiguous:
-            delta = np.ascontiguousarray(delta, dtype=self.dtype)
-        if w.dtype != self.dtype or not w.flags.c_contiguous:
-            w = np.ascontiguousarray(w, dtype=self.dtype)
-        shape = self._step_shape
+        dtype, shape = self.dtype, self._step_shape
+        if delta.dtype != dtype or not delta.flags.c_contiguous:
+            delta = np.ascontiguousarray(delta, dtype=dtype)
+        if w.dtype != dtype or not w.flags.c_contiguous:
+            w = np.ascontiguousarray(w, dtype=dtype)
         if delta.shape != shape or w.shape != shape:
             raise InputError(f"delta and w must have shape {shape}, got {delta.shape} and "
                              f"{w.shape}")
-        z_steps = np.empty(shape, self.dtype)
-        z_terminal = np.empty((shape[0], self.nx), self.dtype)
-        new_delta = np.empty(shape, self.dtype)
+        out = np.empty((3, *shape), dtype)  # z_steps, new_delta, new_w
+        z_terminal = np.empty((shape[0], self.nx), dtype)
         f = entry.factors
         args = (self._vectors, delta, w, self._arrays["Mc"], entry.consts, f.K, f.L, f.Sd, f.D,
-                f.ABd, entry.slot, self._p, self._shared, self._box, self._zero, z_steps,
-                z_terminal, new_delta)
+                f.ABd, entry.slot, self._p, self._shared, self._box, self._zero, out[0],
+                z_terminal, out[1], out[2])
         if self._solve_compiled:
-            ok = kernels.solve_project(*args)
+            ok = passes.solve_project(*args)
         else:
-            ok = self._timed(kernels.solve_project, *args)
+            ok = self._timed(passes.solve_project, *args)
             self._solve_compiled = True
         if not ok:
             raise KernelFailure("non-finite QP solution", f"rho={dict(rho)}", True)
-        return z_steps, z_terminal, new_delta
+        return out[0], z_terminal, out[1], out[2]
 
     # -- internals -----------------------------------------------------------------------------
     def _convert(self, lcs: LCSBatch) -> None:
@@ -329,7 +341,7 @@ class CompiledC3PlusKernel:
                    ) -> tuple[np.ndarray, np.ndarray]:
         """``(base (ny, ny) float64, consts)`` of ``rho`` (memoised by the rho values for the
         current shapes): ``consts = (-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam), sqrt(rho_eta))`` in the
-        working precision (:func:`kernels.solve_project`)."""
+        working precision (:func:`passes.solve_project`)."""
         entry = self._rho_constants.get(key)
         if entry is None:
             nx, nlam = self.nx, self._shape[2]

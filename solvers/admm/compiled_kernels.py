@@ -1,4 +1,4 @@
-"""Numba kernels of the compiled C3+ QP step (:mod:`solvers.admm.compiled`).
+"""Numba kernels of the compiled C3+ QP step (:mod:`solvers.admm.compiled`): the factorisation.
 
 The arithmetic is that of :mod:`solvers.fast` (module docstring there: elimination of ``eta``,
 Jacobi scaling, the Riccati recursion split into a factorisation and linear passes), written
@@ -17,13 +17,26 @@ batch. Two algebraic rearrangements save work without changing the exact answer:
   for ``kk = -Q_vv^-1 r``), and the forward pass is the rollout ``x_{k+1} = A x_k + B_v v_k +
   d`` of the scaled dynamics.
 
+The factorisation divides by the diagonal of ``L`` through its reciprocals (one division
+per pivot instead of one per entry of ``L``, ``Y`` and ``K``; vector division is many times
+slower than multiplication), which changes results by rounding only.
+
 **Layout.** :func:`factorize_batch` works every (rho value, sample) pair as a *lane*:
 blocks of up to :data:`LANE_BLOCK` lanes sit in local arrays with the lane index last, so
 every innermost loop runs over lanes and vectorises (no sum is reassociated: ``fastmath``
-stays off); the results are copied out per sample, so :func:`solve_project` (one sample at a
-time, in the order of :mod:`solvers.fast`) reads contiguous blocks. Small dense algebra
+stays off); the factors are stored with the samples on the last axis, so
+:func:`c3bench.solvers.admm.compiled_passes.solve_project` (the linear passes, projection and
+dual update of one iteration) works the samples as vector lanes too, from its
+:data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE` samples on (below, one sample at a
+time). Each sample's sums keep the order of :mod:`solvers.fast`. Small dense algebra
 (products, Cholesky, triangular solves) is written out by hand; nothing calls
 ``numpy.linalg``.
+
+Measured (planar cube, ``nx = nlam + nu = 10``, ``T = 7``, 10 rho values, 16 samples, one
+core shared with other jobs at load average 2-4): the factorisation runs at about 8.5
+GFLOP/s in this module's count (:func:`factor_flops`), about 16 % of the core's dense
+matmul rate; the innermost lane loops are short (``LANE_BLOCK``), so loop and address
+overhead, not arithmetic, bounds it.
 
 Per sample, rho and step the factorisation costs ``nx^2 (ny + 1) + nv ny nx`` (the products
 ``S [A B_v d]`` and ``B_v^T S [A B_v]``, the latter on the lower triangle of ``Q_vv`` only),
@@ -46,18 +59,17 @@ from typing import Any, TypeVar, cast
 import numba
 import numpy as np
 
-from c3bench.solvers.admm.projection import make_c3plus_pairs
+__all__ = ["LANE_BLOCK", "factor_flops", "factorize_batch", "jit"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-def _jit(function: F) -> F:
-    """``numba.njit(cache=True, fastmath=False)`` with the function's own type for mypy."""
-    return cast(F, numba.njit(cache=True, fastmath=False)(function))
-
-
-_c3plus_pairs = numba.njit(fastmath=False)(make_c3plus_pairs(np))
-"""The one C3+ pair projection (:mod:`c3bench.solvers.admm.projection`) compiled by numba."""
+def jit(function: F) -> F:
+    """``numba.njit(cache=True, fastmath=False, error_model="numpy")`` with the function's own
+    type for mypy. The numpy error model divides by IEEE rules instead of testing every divisor
+    for zero (a branch that keeps a loop from vectorising); every divisor here is a positive
+    pivot or scale."""
+    return cast(F, numba.njit(cache=True, fastmath=False, error_model="numpy")(function))
 
 
 def factor_flops(nx: int, nv: int) -> int:
@@ -69,20 +81,12 @@ def factor_flops(nx: int, nv: int) -> int:
     return 2 * mads
 
 
-def solve_flops(nx: int, nv: int, nlam: int) -> int:
-    """Floating-point operations of the gradient, the two passes, ``eta`` and the projection
-    for one sample and step (2 per multiply-add)."""
-    ny = nx + nv
-    mads = 2 * nlam * ny + nv * nx + nv * nv + nx * nx + nx * nv + nv * nx + nx * nx + nx * nv
-    return 2 * mads + 4 * ny
-
-
-LANE_BLOCK = 64
+LANE_BLOCK = 32
 """Lanes (rho value x sample pairs) factorised together: the innermost loop of every
 operation runs over a block of lanes, so it vectorises without reassociating any sum."""
 
 
-@_jit
+@jit
 def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                     base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray,
                     ridge: Any, jacobi: bool, zero: Any, one: Any,
@@ -93,59 +97,63 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     Inputs: ``A`` (n, nx, nx), ``Bv`` (n, nx, nv), ``d`` (n, nx), ``MtM`` (n, ny, ny);
     ``base`` (m, ny, ny) = ``blockdiag(2Q + 2 rho_x I, 2 rho_lam I, 2R + 2 rho_u I)``,
     ``two_rho_eta`` (m,), so ``H_y = base + 2 rho_eta M^T M``; ``PT`` (nx, nx).
-    Outputs (preallocated): ``K`` (m, n, T, nv, nx), ``L`` (m, n, T, nv, nv) lower
-    Cholesky factors of ``Q_vv``, ``Sd`` (m, n, T, nx) = ``S_{k+1} d``, ``D`` (m, n, ny)
-    scaling, ``ABd`` (m, n, nx, ny + 1) = scaled ``[A B_v d]``; ``failed``
-    (m, n): -1, or the (first, backward) step whose ``Q_vv`` is not positive definite.
+    Outputs (preallocated, samples on the last axis): ``K`` (m, T, nv, nx, n), ``L``
+    (m, T, nv, nv, n) lower Cholesky factors of ``Q_vv``, ``Sd`` (m, T, nx, n) =
+    ``S_{k+1} d``, ``D`` (m, ny, n) scaling, ``ABd`` (m, nx, ny + 1, n) = scaled
+    ``[A B_v d]``; ``failed`` (m, n): -1, or the (first, backward) step whose ``Q_vv`` is not
+    positive definite.
 
     Lanes (lane ``i n + j``: rho ``i``, sample ``j``) are worked in blocks of at most
     :data:`LANE_BLOCK` in contiguous local arrays with the lane index last (so the innermost
-    loops vectorise across lanes); the results are copied out per sample (so the linear
-    passes of :func:`solve_project` read contiguous blocks).
+    loops vectorise across lanes); the results are copied out with the samples last (so
+    the linear passes of :func:`c3bench.solvers.admm.compiled_passes.solve_project`
+    vectorise across samples).
     """
     m, n = base.shape[0], A.shape[0]
     nx, nv = A.shape[1], Bv.shape[2]
     ny = nx + nv
-    T = K.shape[2]
+    T = K.shape[1]
     lanes = m * n
-    Kl = K.reshape((lanes, T, nv, nx))
-    Ll = L.reshape((lanes, T, nv, nv))
-    Sdl = Sd.reshape((lanes, T, nx))
-    Dl = D.reshape((lanes, ny))
-    ABl = ABd.reshape((lanes, nx, ny + 1))
-    fl = failed.reshape(lanes)
-    LB = LANE_BLOCK
+    LB = min(LANE_BLOCK, lanes)
     dt = A.dtype
     Hy, S, Db = np.empty((ny, ny, LB), dt), np.empty((nx, nx, LB), dt), np.empty((ny, LB), dt)
     ABb, SAB = np.empty((nx, ny + 1, LB), dt), np.empty((nx, ny + 1, LB), dt)
     Qv, Y = np.empty((nv, ny, LB), dt), np.empty((nv, nx, LB), dt)
     Kb, Lb = np.empty((nv, nx, LB), dt), np.zeros((nv, nv, LB), dt)
-    sv, fb = np.empty(LB, dt), np.empty(LB, np.int64)
+    sv, fb, Li = np.empty(LB, dt), np.empty(LB, np.int64), np.empty((nv, LB), dt)
+    li, lj = np.empty(LB, np.int64), np.empty(LB, np.int64)
     for l0 in range(0, lanes, LB):
         nl = min(LB, lanes - l0)
         _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, n,
                      l0, nl, Hy, S, Db, ABb)
         fb[:] = -1
-        for k in range(T - 1, -1, -1):
-            _riccati_lanes(k, nl, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, Y, sv, Kb, Lb, fb)
-            for l in range(nl):
-                for a in range(nv):
-                    for b in range(nx):
-                        Kl[l0 + l, k, a, b] = Kb[a, b, l]
-                    for b in range(nv):
-                        Ll[l0 + l, k, a, b] = Lb[a, b, l]
-                for a in range(nx):
-                    Sdl[l0 + l, k, a] = SAB[a, ny, l]
         for l in range(nl):
-            fl[l0 + l] = fb[l]
+            li[l], lj[l] = (l0 + l) // n, (l0 + l) % n
+        for k in range(T - 1, -1, -1):
+            _riccati_lanes(k, nl, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, Y, sv, Kb, Lb, Li,
+                           fb)
+            # lane l0 + l is (rho li[l], sample lj[l]); samples are the factors' last axis
+            for a in range(nv):
+                for b in range(nx):
+                    for l in range(nl):
+                        K[li[l], k, a, b, lj[l]] = Kb[a, b, l]
+                for b in range(a + 1):  # lower triangle (the rest stays 0)
+                    for l in range(nl):
+                        L[li[l], k, a, b, lj[l]] = Lb[a, b, l]
+            for a in range(nx):
+                for l in range(nl):
+                    Sd[li[l], k, a, lj[l]] = SAB[a, ny, l]
+        for l in range(nl):
+            i, j = li[l], lj[l]
+            failed[i, j] = fb[l]
             for a in range(ny):
-                Dl[l0 + l, a] = Db[a, l]
+                D[i, a, j] = Db[a, l]
             for a in range(nx):
                 for b in range(ny + 1):
-                    ABl[l0 + l, a, b] = ABb[a, b, l]
+                    ABd[i, a, b, j] = ABb[a, b, l]
 
 
-@_jit
+@jit
 def _scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                  base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray, ridge: Any,
                  jacobi: bool, zero: Any, one: Any, n: int, l0: int, nl: int, Hy: np.ndarray,
@@ -178,11 +186,11 @@ def _scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
             ABb[a, ny, l] = d[j, a] * inv
 
 
-@_jit
+@jit
 def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np.ndarray,
                    ABb: np.ndarray, Hy: np.ndarray, SAB: np.ndarray, Qv: np.ndarray,
                    Y: np.ndarray, sv: np.ndarray, Kb: np.ndarray, Lb: np.ndarray,
-                   fb: np.ndarray) -> None:
+                   Li: np.ndarray, fb: np.ndarray) -> None:
     """One backward step for a block of ``nl`` lanes: ``S`` (``S_{k+1}`` in,
     ``S_k`` out), ``K``, ``L`` and (in ``SAB[:, ny]``) ``S_{k+1} d`` of step ``k``; a lane
     whose ``Q_vv`` is not positive definite gets ``k`` in ``fb`` (first failure only) and
@@ -205,7 +213,7 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
             for b in range(width):
                 for l in range(nl):
                     Qv[a, b, l] += ABb[c, nx + a, l] * SAB[c, b, l]
-    for a in range(nv):  # Q_vv = L L^T
+    for a in range(nv):  # Q_vv = L L^T; Li = 1 / diag(L) (multiplications, not divisions)
         for b in range(a + 1):
             for l in range(nl):
                 sv[l] = Qv[a, nx + b, l]
@@ -213,16 +221,16 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
                 for l in range(nl):
                     sv[l] -= Lb[a, c, l] * Lb[b, c, l]
             if a == b:
-                for l in range(nl):
-                    if not sv[l] > zero:
-                        if fb[l] < 0:
-                            fb[l] = k
-                        sv[l] = one
+                for l in range(nl):  # branch-free (vectorises): a failed pivot becomes 1
+                    positive = sv[l] > zero
+                    fb[l] = k if (not positive and fb[l] < 0) else fb[l]
+                    sv[l] = sv[l] if positive else one
                 for l in range(nl):
                     Lb[a, a, l] = np.sqrt(sv[l])
+                    Li[a, l] = one / Lb[a, a, l]
             else:
                 for l in range(nl):
-                    Lb[a, b, l] = sv[l] / Lb[b, b, l]
+                    Lb[a, b, l] = sv[l] * Li[b, l]
     for a in range(nv):  # Y = L^-1 Q_vx
         for b in range(nx):
             for l in range(nl):
@@ -233,7 +241,7 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
                     Y[a, b, l] -= Lb[a, c, l] * Y[c, b, l]
         for b in range(nx):
             for l in range(nl):
-                Y[a, b, l] = Y[a, b, l] / Lb[a, a, l]
+                Y[a, b, l] = Y[a, b, l] * Li[a, l]
     for a in range(nv - 1, -1, -1):  # K = -L^-T Y
         for b in range(nx):
             for l in range(nl):
@@ -244,7 +252,7 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
                     Kb[a, b, l] -= Lb[c, a, l] * Kb[c, b, l]
         for b in range(nx):
             for l in range(nl):
-                Kb[a, b, l] = Kb[a, b, l] / Lb[a, a, l]
+                Kb[a, b, l] = Kb[a, b, l] * Li[a, l]
     for a in range(nx):  # S_k = H_xx + A^T S A - Y^T Y (upper triangle, mirrored)
         for b in range(a, nx):
             for l in range(nl):
@@ -260,155 +268,3 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
         for b in range(a + 1, nx):
             for l in range(nl):
                 S[b, a, l] = S[a, b, l]
-
-
-@_jit
-def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.ndarray,
-                  consts: np.ndarray, K: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray,
-                  ABd: np.ndarray, index: int, p: np.ndarray, shared: bool, box: np.ndarray,
-                  zero: Any, z_steps: np.ndarray, z_terminal: np.ndarray, new_delta: np.ndarray
-                  ) -> bool:
-    """QP step (linear passes of factorisation ``index`` of ``K`` (m, n, T, nv, nx) etc.,
-    :func:`factorize_batch`) and projection for every sample; ``False`` when the QP solution
-    is not finite. ``vectors`` = ``(x0, g_x, g_T)`` (3, nx), ``Mc`` = ``[M c]`` (n, nlam,
-    ny + 1), ``consts`` = ``(-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam), sqrt(rho_eta))``.
-
-    Gradient ``g_y = -2 G_y (delta - w)_y + (g_x, 0) + 2 rho_eta M^T (c - (delta - w)_eta)``,
-    scaled by ``D``; backward ``r = g_v + B_v^T e``, ``kk = -L^-T L^-1 r``, ``e <- S_k d +
-    g_x + A^T e + K^T r``; forward ``v = K x + kk``, ``x <- A x + B_v v + d``; ``eta = M y +
-    c``; then the C3+ projection of ``z + w``: pairs in closed form, ``x`` clipped to the box
-    ``box`` (2, nx + nu) = (lower, upper) of one step's ``(x, u)`` (``+-inf`` where
-    unbounded), ``u`` replaced, when ``shared``, by the weighted mean ``sum_j p_j (z +
-    w)_{j,u}`` and clipped to the box.
-    """
-    n, T, ns = delta.shape
-    nx, nv = K.shape[4], K.shape[3]
-    nlam = Mc.shape[1]
-    ny = nx + nv
-    x0, gx, gT = vectors[0], vectors[1], vectors[2]
-    g2 = consts[:ny]
-    two_rho_eta, sqrt_lam, sqrt_eta = consts[ny], consts[ny + 1], consts[ny + 2]
-    gy = np.empty((T, ny), dtype=delta.dtype)
-    kk = np.empty((T, nv), dtype=delta.dtype)
-    eta = np.empty(nlam, dtype=delta.dtype)
-    e = np.empty(nx, dtype=delta.dtype)
-    r = np.empty(nv, dtype=delta.dtype)
-    t = np.empty(nv, dtype=delta.dtype)
-    x = np.empty(nx, dtype=delta.dtype)
-    xn = np.empty(nx, dtype=delta.dtype)
-    total = zero
-    for j in range(n):
-        Dj = D[index, j]
-        ABdj = ABd[index, j]
-        for k in range(T):
-            for b in range(nlam):
-                eta[b] = Mc[j, b, ny] - (delta[j, k, ny + b] - w[j, k, ny + b])
-            for a in range(ny):
-                g = (delta[j, k, a] - w[j, k, a]) * g2[a]
-                if a < nx:
-                    g += gx[a]
-                s = zero
-                for b in range(nlam):
-                    s += Mc[j, b, a] * eta[b]
-                gy[k, a] = (g + s * two_rho_eta) * Dj[a]
-        for a in range(nx):
-            e[a] = Sd[index, j, T - 1, a] + gT[a] * Dj[a]
-        for k in range(T - 1, -1, -1):
-            for a in range(nv):  # r = g_v + B_v^T e
-                r[a] = gy[k, nx + a]
-            for b in range(nx):
-                h = e[b]
-                for a in range(nv):
-                    r[a] += h * ABdj[b, nx + a]
-            Lk = L[index, j, k]
-            for a in range(nv):  # L t = r
-                s = r[a]
-                for b in range(a):
-                    s -= Lk[a, b] * t[b]
-                t[a] = s / Lk[a, a]
-            for a in range(nv - 1, -1, -1):  # L^T kk = -t
-                s = -t[a]
-                for b in range(a + 1, nv):
-                    s -= Lk[b, a] * kk[k, b]
-                kk[k, a] = s / Lk[a, a]
-            if k > 0:
-                Kk = K[index, j, k]
-                for a in range(nx):  # e <- S_k d + g_x + A^T e + K^T r
-                    xn[a] = gy[k, a] + Sd[index, j, k - 1, a]
-                for b in range(nx):
-                    h = e[b]
-                    for a in range(nx):
-                        xn[a] += h * ABdj[b, a]
-                for b in range(nv):
-                    h = r[b]
-                    for a in range(nx):
-                        xn[a] += h * Kk[b, a]
-                for a in range(nx):
-                    e[a] = xn[a]
-        for a in range(nx):
-            x[a] = x0[a] / Dj[a]
-            z_steps[j, 0, a] = x0[a]
-        for k in range(T):
-            Kk = K[index, j, k]
-            for a in range(nv):
-                s = kk[k, a]
-                for b in range(nx):
-                    s += Kk[a, b] * x[b]
-                t[a] = s
-                z_steps[j, k, nx + a] = s * Dj[nx + a]
-            for a in range(nx):
-                s = ABdj[a, ny]
-                for b in range(nx):
-                    s += ABdj[a, b] * x[b]
-                for b in range(nv):
-                    s += ABdj[a, nx + b] * t[b]
-                xn[a] = s
-            for a in range(nx):
-                x[a] = xn[a]
-                if k + 1 < T:
-                    z_steps[j, k + 1, a] = xn[a] * Dj[a]
-                else:
-                    z_terminal[j, a] = xn[a] * Dj[a]
-        for k in range(T):
-            for b in range(nlam):
-                s = Mc[j, b, ny]
-                for a in range(ny):
-                    s += Mc[j, b, a] * z_steps[j, k, a]
-                z_steps[j, k, ny + b] = s
-            for a in range(ns):
-                total += z_steps[j, k, a]
-            _project_step(z_steps[j, k], w[j, k], new_delta[j, k], nx, nlam, sqrt_lam,
-                          sqrt_eta, box, zero)
-        for a in range(nx):
-            total += z_terminal[j, a]
-    nu = nv - nlam
-    for k in range(T):
-        for a in range(nx + nlam, nx + nlam + nu):
-            lower, upper = box[0, a - nlam], box[1, a - nlam]
-            if shared and n > 1:
-                s = zero
-                for j in range(n):
-                    s += p[j] * (z_steps[j, k, a] + w[j, k, a])
-                s = min(max(s, lower), upper)
-                for j in range(n):
-                    new_delta[j, k, a] = s
-            else:
-                for j in range(n):
-                    new_delta[j, k, a] = min(max(new_delta[j, k, a], lower), upper)
-    return bool(np.isfinite(total))
-
-
-@_jit
-def _project_step(z: np.ndarray, w: np.ndarray, out: np.ndarray, nx: int, nlam: int,
-                  sqrt_lam: Any, sqrt_eta: Any, box: np.ndarray, zero: Any) -> None:
-    """C3+ projection of ``v = z + w`` of one step into ``out``: ``x`` clipped to the box,
-    ``u`` copied (the caller clips or averages it); the pairs by the one closed form
-    (:func:`c3bench.solvers.admm.projection.make_c3plus_pairs`, compiled)."""
-    ns = z.shape[0]
-    for a in range(ns):
-        out[a] = z[a] + w[a]
-    for a in range(nx):
-        out[a] = min(max(out[a], box[0, a]), box[1, a])
-    lam, eta = _c3plus_pairs(out[nx:nx + nlam], out[ns - nlam:], sqrt_lam, sqrt_eta)
-    out[nx:nx + nlam] = lam
-    out[ns - nlam:] = eta

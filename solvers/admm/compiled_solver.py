@@ -2,12 +2,13 @@
 
 :class:`CompiledC3Plus` has the interface of :class:`c3bench.solvers.fast.FastC3Plus`
 (``solve(lcs, x0, weights, delta, w, fallback_input)``, usable by
-:class:`c3bench.solvers.admm.FastC3PlusController`): the loop of :mod:`.loop` does the dual
-update, residuals, rho schedule, stopping and output; :class:`.compiled.CompiledC3PlusKernel`
-does the QP step and the projection in one compiled call per iteration and factorises a
-geometric schedule's rho values up front in one compiled call. The box limits of
-``mpc.limits`` (``options.use_limits``) go into its projection, ``projection_weights`` (``U``)
-into the pairs' closed form.
+:class:`c3bench.solvers.admm.FastC3PlusController`): the loop of :mod:`.loop` does the
+residuals, rho schedule (with the dual rescaling), stopping and output;
+:class:`.compiled.CompiledC3PlusKernel` does the QP step, the projection and the (compiled)
+dual update in one compiled call per iteration (:meth:`CompiledC3Plus.fused`, which the loop
+calls) and factorises a geometric schedule's rho values up front in one compiled call. The
+box limits of ``mpc.limits`` (``options.use_limits``) go into its projection,
+``projection_weights`` (``U``) into the pairs' closed form.
 """
 
 from __future__ import annotations
@@ -96,6 +97,16 @@ class CompiledC3Plus:
         """QP step and projection of all samples in one compiled call."""
         t0 = time.perf_counter()
         out = self.kernel.iterate(rho, delta, w)
+        self.timings.qp_solve += time.perf_counter() - t0
+        return out
+
+    def fused(self, kernel: Any, rho: Mapping[str, float], delta: np.ndarray, w: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One ADMM iteration (:func:`c3bench.solvers.admm.loop.admm_iteration`: QP step,
+        projection and the compiled :func:`~c3bench.solvers.admm.loop.dual_update`) in one
+        compiled call; the loop calls this instead of ``admm_iteration``."""
+        t0 = time.perf_counter()
+        out = self.kernel.step(rho, delta, w)
         self.timings.qp_solve += time.perf_counter() - t0
         return out
 

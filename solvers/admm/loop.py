@@ -20,7 +20,8 @@ The kernel (:mod:`.kernel`) does steps 1 and 2; this module does step 3 and the 
    ``sqrt(sum_j p_j ||.||_j^2)``;
 5. **stopping**: ``fixed`` iterations, or ``residual``: ``r <= sqrt(p) eps_abs + eps_rel
    max(||z||, ||delta||)`` and ``s <= sqrt(p) eps_abs + eps_rel ||2 G w||`` (Boyd eq. 3.12);
-6. **rho update** by the schedule (:mod:`.schedules`); when ``G`` changes by
+6. **rho update** by the schedule (:mod:`.schedules`; a data-independent schedule's values
+   are read from its ``plan``, computed once per control step); when ``G`` changes by
    ``rho_new / rho_old`` the scaled dual is rescaled by ``rho_old / rho_new`` so that
    ``y = 2 G w`` is unchanged (Boyd et al. 2011, end of section 3.4.1).
 
@@ -133,6 +134,7 @@ def shift_warm_start(delta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 _RATIOS: dict[tuple[Any, ...], np.ndarray] = {}
+"""Memoised ratio vectors of :func:`rescale_dual`."""
 
 
 def rescale_dual(w: Any, layout: HorizonLayout, rho_old: Mapping[str, float],
@@ -141,11 +143,12 @@ def rescale_dual(w: Any, layout: HorizonLayout, rho_old: Mapping[str, float],
     """``w * G_old / G_new`` blockwise (keeps ``y = 2 G w``); ``w`` is (..., T, step size).
 
     A block whose weight is 0 before and after keeps its dual (ratio 1). The ratio vectors
-    are memoised by (layout, rho values, dtype): a schedule repeats them every control step.
+    are memoised by (block sizes, dtype, rho items): a schedule repeats them every control
+    step.
     ``constant`` moves the (memoised) ratio to the kernel's device once (JAX).
     """
-    key = (tuple(layout.block_sizes().items()), tuple(sorted(rho_old.items())),
-           tuple(sorted(rho_new.items())), str(w.dtype))
+    key = (layout.nx, layout.nlam, layout.nu, layout.n_eta, w.dtype.char,
+           *rho_old.items(), None, *rho_new.items())
     ratio = _RATIOS.get(key)
     if ratio is None:
         old = weight_vector(layout, rho_old)
@@ -222,7 +225,7 @@ def run_admm(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any,
     kernel.timings = FastTimings()
     rho = dict(options.rho0)
     rho_used = dict(rho)
-    inputs.plan = loop.schedule.plan(rho, options.admm_iterations)
+    inputs.plan = plan = loop.schedule.plan(rho, options.admm_iterations)
     z_steps: Any = None
     z_terminal: Any = None
     previous: float | None = None
@@ -236,7 +239,7 @@ def run_admm(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any,
             False
     for i in range(options.admm_iterations if ok else 0):
         iteration_start = time.perf_counter()
-        rho_used = dict(rho)
+        rho_used = rho  # never changed in place: the schedule returns a new dict
         try:
             z, terminal, new_delta, new_w = step(kernel, rho, delta, w)
         except KernelFailure as failure:
@@ -263,7 +266,8 @@ def run_admm(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any,
             status = f"converged in {completed} iterations (r={consensus:.3g}, s={dual:.3g})"
             break
         if i + 1 < options.admm_iterations:
-            updated = loop.schedule.next(rho, consensus, previous, dual)
+            updated = plan[i + 1] if plan else loop.schedule.next(rho, consensus, previous,
+                                                                  dual)
             if options.rescale_dual and updated != rho:
                 w = rescale_dual(w, kernel.layout, rho, updated, constant)
             rho = updated

@@ -1,0 +1,373 @@
+"""Numba kernel of one compiled C3+ ADMM iteration: linear passes, projection, dual update.
+
+:func:`solve_project` takes the factors of :func:`c3bench.solvers.admm.compiled_kernels.
+factorize_batch` (samples on their last axis) and does, for every sample, the gradient, the
+backward and forward passes of the Riccati recursion (arithmetic of :mod:`solvers.fast`, the
+rearrangements of :mod:`.compiled_kernels`), ``eta``, the C3+ projection (the one closed form
+of :mod:`c3bench.solvers.admm.projection`, compiled) and the loop's dual update
+(:func:`c3bench.solvers.admm.loop.dual_update`, compiled), in one call. From
+:data:`LANE_SOLVE` samples on the samples are vector lanes (every innermost loop runs over
+samples); below, one sample at a time. Each sample's sums keep the order of
+:mod:`solvers.fast`.
+
+References: the Riccati recursion of the LQ problem (Rawlings, Mayne & Diehl, *Model Predictive
+Control*, 2nd ed., section 1.3.3); triangular solves (Golub & Van Loan, *Matrix Computations*,
+4th ed., algorithms 3.1.1-3.1.2); the consensus ADMM's dual update (Boyd et al. 2011,
+section 3.1.1).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+
+from c3bench.solvers.admm.compiled_kernels import jit as _jit
+from c3bench.solvers.admm.loop import dual_update
+from c3bench.solvers.admm.projection import make_c3plus_pairs
+
+__all__ = ["LANE_SOLVE", "solve_flops", "solve_project"]
+
+_c3plus_pairs = numba.njit(fastmath=False)(make_c3plus_pairs(np))
+"""The one C3+ pair projection (:mod:`c3bench.solvers.admm.projection`) compiled by numba."""
+_dual_update = numba.njit(fastmath=False)(dual_update)
+"""The loop's one dual update (:func:`c3bench.solvers.admm.loop.dual_update`) compiled by
+numba (called entry by entry: no temporary arrays)."""
+
+LANE_SOLVE = 4
+"""From this many samples on, :func:`solve_project` works the samples as vector lanes
+(measured: about equal at 4 samples, lanes 1.2-1.5 times faster at 8, slower at 2-3)."""
+
+
+def solve_flops(nx: int, nv: int, nlam: int) -> int:
+    """Floating-point operations of the gradient, the two passes, ``eta`` and the projection
+    for one sample and step (2 per multiply-add)."""
+    ny = nx + nv
+    mads = 2 * nlam * ny + nv * nx + nv * nv + nx * nx + nx * nv + nv * nx + nx * nx + nx * nv
+    return 2 * mads + 4 * ny
+
+
+@_jit
+def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.ndarray,
+                  consts: np.ndarray, K: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray,
+                  ABd: np.ndarray, index: int, p: np.ndarray, shared: bool, box: np.ndarray,
+                  zero: Any, z_steps: np.ndarray, z_terminal: np.ndarray, new_delta: np.ndarray,
+                  new_w: np.ndarray) -> bool:
+    """QP step (linear passes of factorisation ``index`` of ``K`` (m, T, nv, nx, n) etc.,
+    :func:`factorize_batch`), projection and dual update for every sample; ``False`` when the
+    QP solution is not finite. ``vectors`` = ``(x0, g_x, g_T)`` (3, nx), ``Mc`` = ``[M c]``
+    (n, nlam, ny + 1), ``consts`` = ``(-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam), sqrt(rho_eta))``.
+
+    Gradient ``g_y = -2 G_y (delta - w)_y + (g_x, 0) + 2 rho_eta M^T (c - (delta - w)_eta)``,
+    scaled by ``D``; backward ``r = g_v + B_v^T e``, ``kk = -L^-T L^-1 r``, ``e <- S_k d +
+    g_x + A^T e + K^T r``; forward ``v = K x + kk``, ``x <- A x + B_v v + d``; ``eta = M y +
+    c``; then the C3+ projection of ``z + w`` (:func:`_project`) and the loop's dual update
+    ``new_w = w + z - new_delta`` (:func:`c3bench.solvers.admm.loop.dual_update`, compiled,
+    entry by entry). Every sample is a lane: the innermost loops run over samples (the last
+    axis of the factors and of the local arrays), each sample's sums in the order of
+    :mod:`solvers.fast`.
+    """
+    n, T, ns = delta.shape
+    if n < LANE_SOLVE:
+        return _solve_project_samples(vectors, delta, w, Mc, consts, K, L, Sd, D, ABd, index, p,
+                                      shared, box, zero, z_steps, z_terminal, new_delta, new_w)
+    nx, nv = K.shape[3], K.shape[2]
+    nlam = Mc.shape[1]
+    ny = nx + nv
+    dt = delta.dtype
+    x0, gx, gT = vectors[0], vectors[1], vectors[2]
+    g2 = consts[:ny]
+    two_rho_eta = consts[ny]
+    Ki, Li, Sdi, Di, AB = K[index], L[index], Sd[index], D[index], ABd[index]
+    Mt = np.empty((nlam, ny + 1, n), dt)  # [M c] with samples last
+    dw = np.empty((T, ns, n), dt)  # delta - w
+    for j in range(n):
+        for b in range(nlam):
+            for a in range(ny + 1):
+                Mt[b, a, j] = Mc[j, b, a]
+        for k in range(T):
+            for a in range(ns):
+                dw[k, a, j] = delta[j, k, a] - w[j, k, a]
+    gy, kk = np.empty((T, ny, n), dt), np.empty((T, nv, n), dt)
+    zt = np.empty((T + 1, ns, n), dt)  # z with samples last (row T: terminal x)
+    eta, e, r = np.empty((nlam, n), dt), np.empty((nx, n), dt), np.empty((nv, n), dt)
+    t, x, xn = np.empty((nv, n), dt), np.empty((nx, n), dt), np.empty((nx, n), dt)
+    for k in range(T):  # gradient
+        for b in range(nlam):
+            for j in range(n):
+                eta[b, j] = Mt[b, ny, j] - dw[k, ny + b, j]
+        for a in range(ny):
+            for j in range(n):
+                gy[k, a, j] = zero
+            for b in range(nlam):
+                for j in range(n):
+                    gy[k, a, j] += Mt[b, a, j] * eta[b, j]
+            for j in range(n):
+                g = dw[k, a, j] * g2[a]
+                if a < nx:
+                    g += gx[a]
+                gy[k, a, j] = (g + gy[k, a, j] * two_rho_eta) * Di[a, j]
+    for a in range(nx):
+        for j in range(n):
+            e[a, j] = Sdi[T - 1, a, j] + gT[a] * Di[a, j]
+    for k in range(T - 1, -1, -1):  # backward pass
+        for a in range(nv):  # r = g_v + B_v^T e
+            for j in range(n):
+                r[a, j] = gy[k, nx + a, j]
+        for b in range(nx):
+            for a in range(nv):
+                for j in range(n):
+                    r[a, j] += e[b, j] * AB[b, nx + a, j]
+        Lk = Li[k]
+        for a in range(nv):  # L t = r
+            for j in range(n):
+                t[a, j] = r[a, j]
+            for b in range(a):
+                for j in range(n):
+                    t[a, j] -= Lk[a, b, j] * t[b, j]
+            for j in range(n):
+                t[a, j] = t[a, j] / Lk[a, a, j]
+        for a in range(nv - 1, -1, -1):  # L^T kk = -t
+            for j in range(n):
+                kk[k, a, j] = -t[a, j]
+            for b in range(a + 1, nv):
+                for j in range(n):
+                    kk[k, a, j] -= Lk[b, a, j] * kk[k, b, j]
+            for j in range(n):
+                kk[k, a, j] = kk[k, a, j] / Lk[a, a, j]
+        if k > 0:
+            Kk = Ki[k]
+            for a in range(nx):  # e <- S_k d + g_x + A^T e + K^T r
+                for j in range(n):
+                    xn[a, j] = gy[k, a, j] + Sdi[k - 1, a, j]
+            for b in range(nx):
+                for a in range(nx):
+                    for j in range(n):
+                        xn[a, j] += e[b, j] * AB[b, a, j]
+            for b in range(nv):
+                for a in range(nx):
+                    for j in range(n):
+                        xn[a, j] += r[b, j] * Kk[b, a, j]
+            for a in range(nx):
+                for j in range(n):
+                    e[a, j] = xn[a, j]
+    for a in range(nx):  # forward pass
+        for j in range(n):
+            x[a, j] = x0[a] / Di[a, j]
+            zt[0, a, j] = x0[a]
+    for k in range(T):
+        Kk = Ki[k]
+        for a in range(nv):
+            for j in range(n):
+                t[a, j] = kk[k, a, j]
+            for b in range(nx):
+                for j in range(n):
+                    t[a, j] += Kk[a, b, j] * x[b, j]
+            for j in range(n):
+                zt[k, nx + a, j] = t[a, j] * Di[nx + a, j]
+        for a in range(nx):
+            for j in range(n):
+                xn[a, j] = AB[a, ny, j]
+            for b in range(nx):
+                for j in range(n):
+                    xn[a, j] += AB[a, b, j] * x[b, j]
+            for b in range(nv):
+                for j in range(n):
+                    xn[a, j] += AB[a, nx + b, j] * t[b, j]
+        for a in range(nx):
+            for j in range(n):
+                x[a, j] = xn[a, j]
+                zt[k + 1, a, j] = xn[a, j] * Di[a, j]
+    for k in range(T):  # eta = M y + c
+        for b in range(nlam):
+            for j in range(n):
+                zt[k, ny + b, j] = Mt[b, ny, j]
+            for a in range(ny):
+                for j in range(n):
+                    zt[k, ny + b, j] += Mt[b, a, j] * zt[k, a, j]
+    total = zero
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                z_steps[j, k, a] = zt[k, a, j]
+                total += zt[k, a, j]
+        for a in range(nx):
+            z_terminal[j, a] = zt[T, a, j]
+            total += zt[T, a, j]
+    _project(z_steps, w, new_delta, nx, nlam, consts[-2], consts[-1], p, shared, box, zero)
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                new_w[j, k, a] = _dual_update(w[j, k, a], z_steps[j, k, a], new_delta[j, k, a])
+    return bool(np.isfinite(total))
+
+
+@_jit
+def _solve_project_samples(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
+                           Mc: np.ndarray, consts: np.ndarray, K: np.ndarray, L: np.ndarray,
+                           Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, index: int,
+                           p: np.ndarray, shared: bool, box: np.ndarray, zero: Any,
+                           z_steps: np.ndarray, z_terminal: np.ndarray, new_delta: np.ndarray,
+                           new_w: np.ndarray) -> bool:
+    """:func:`solve_project` one sample at a time (faster below :data:`LANE_SOLVE` samples,
+    where vectors over samples would be too short); ``False`` when the QP solution is not
+    finite.
+    """
+    n, T, ns = delta.shape
+    nx = K.shape[3]
+    total = zero
+    work = _Work(delta.dtype, T, nx, K.shape[2], Mc.shape[1])
+    for j in range(n):
+        _solve_sample(j, vectors, delta, w, Mc, consts, K, L, Sd, D[index, :, j],
+                      ABd[index, :, :, j], index, zero, z_steps, z_terminal, work)
+        for k in range(T):
+            for a in range(ns):
+                total += z_steps[j, k, a]
+        for a in range(nx):
+            total += z_terminal[j, a]
+    _project(z_steps, w, new_delta, nx, Mc.shape[1], consts[-2], consts[-1], p, shared, box,
+             zero)
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                new_w[j, k, a] = _dual_update(w[j, k, a], z_steps[j, k, a], new_delta[j, k, a])
+    return bool(np.isfinite(total))
+
+
+@_jit
+def _Work(dtype: Any, T: int, nx: int, nv: int, nlam: int) -> tuple[np.ndarray, ...]:
+    """Scratch arrays of :func:`_solve_sample`: ``g_y`` (T, ny), ``kk`` (T, nv), ``eta``,
+    ``e``, ``r``, ``t``, ``x``, ``x_next``."""
+    ny = nx + nv
+    return (np.empty((T, ny), dtype), np.empty((T, nv), dtype), np.empty(nlam, dtype),
+            np.empty(nx, dtype), np.empty(nv, dtype), np.empty(nv, dtype),
+            np.empty(nx, dtype), np.empty(nx, dtype))
+
+
+@_jit
+def _solve_sample(j: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
+                  Mc: np.ndarray, consts: np.ndarray, K: np.ndarray, L: np.ndarray,
+                  Sd: np.ndarray, Dj: np.ndarray, ABdj: np.ndarray, index: int, zero: Any,
+                  z_steps: np.ndarray, z_terminal: np.ndarray, work: Any) -> None:
+    """Gradient, backward and forward passes and ``eta`` of sample ``j`` (:func:`solve_project`)."""
+    T = delta.shape[1]
+    nx, nv = K.shape[3], K.shape[2]
+    nlam = Mc.shape[1]
+    ny = nx + nv
+    x0, gx, gT = vectors[0], vectors[1], vectors[2]
+    g2 = consts[:ny]
+    two_rho_eta = consts[ny]
+    gy, kk, eta, e, r, t, x, xn = work
+    for k in range(T):
+        for b in range(nlam):
+            eta[b] = Mc[j, b, ny] - (delta[j, k, ny + b] - w[j, k, ny + b])
+        for a in range(ny):
+            g = (delta[j, k, a] - w[j, k, a]) * g2[a]
+            if a < nx:
+                g += gx[a]
+            s = zero
+            for b in range(nlam):
+                s += Mc[j, b, a] * eta[b]
+            gy[k, a] = (g + s * two_rho_eta) * Dj[a]
+    for a in range(nx):
+        e[a] = Sd[index, T - 1, a, j] + gT[a] * Dj[a]
+    for k in range(T - 1, -1, -1):
+        for a in range(nv):  # r = g_v + B_v^T e
+            r[a] = gy[k, nx + a]
+        for b in range(nx):
+            h = e[b]
+            for a in range(nv):
+                r[a] += h * ABdj[b, nx + a]
+        Lk = L[index, k, :, :, j]
+        for a in range(nv):  # L t = r
+            s = r[a]
+            for b in range(a):
+                s -= Lk[a, b] * t[b]
+            t[a] = s / Lk[a, a]
+        for a in range(nv - 1, -1, -1):  # L^T kk = -t
+            s = -t[a]
+            for b in range(a + 1, nv):
+                s -= Lk[b, a] * kk[k, b]
+            kk[k, a] = s / Lk[a, a]
+        if k > 0:
+            Kk = K[index, k, :, :, j]
+            for a in range(nx):  # e <- S_k d + g_x + A^T e + K^T r
+                xn[a] = gy[k, a] + Sd[index, k - 1, a, j]
+            for b in range(nx):
+                h = e[b]
+                for a in range(nx):
+                    xn[a] += h * ABdj[b, a]
+            for b in range(nv):
+                h = r[b]
+                for a in range(nx):
+                    xn[a] += h * Kk[b, a]
+            for a in range(nx):
+                e[a] = xn[a]
+    for a in range(nx):
+        x[a] = x0[a] / Dj[a]
+        z_steps[j, 0, a] = x0[a]
+    for k in range(T):
+        Kk = K[index, k, :, :, j]
+        for a in range(nv):
+            s = kk[k, a]
+            for b in range(nx):
+                s += Kk[a, b] * x[b]
+            t[a] = s
+            z_steps[j, k, nx + a] = s * Dj[nx + a]
+        for a in range(nx):
+            s = ABdj[a, ny]
+            for b in range(nx):
+                s += ABdj[a, b] * x[b]
+            for b in range(nv):
+                s += ABdj[a, nx + b] * t[b]
+            xn[a] = s
+        for a in range(nx):
+            x[a] = xn[a]
+            if k + 1 < T:
+                z_steps[j, k + 1, a] = xn[a] * Dj[a]
+            else:
+                z_terminal[j, a] = xn[a] * Dj[a]
+    for k in range(T):
+        for b in range(nlam):
+            s = Mc[j, b, ny]
+            for a in range(ny):
+                s += Mc[j, b, a] * z_steps[j, k, a]
+            z_steps[j, k, ny + b] = s
+
+
+@_jit
+def _project(z: np.ndarray, w: np.ndarray, out: np.ndarray, nx: int, nlam: int,
+             sqrt_lam: Any, sqrt_eta: Any, p: np.ndarray, shared: bool, box: np.ndarray,
+             zero: Any) -> None:
+    """C3+ projection of ``v = z + w`` (n, T, ns) into ``out``: ``x`` clipped to the box
+    ``box`` (2, nx + nu) = (lower, upper) of one step's ``(x, u)`` (``+-inf`` where
+    unbounded); the pairs of all samples and steps by the one closed form
+    (:func:`c3bench.solvers.admm.projection.make_c3plus_pairs`, compiled, one call); ``u``
+    replaced, when ``shared`` and ``n > 1``, by the weighted mean ``sum_j p_j v_{j,u}``, then
+    clipped to the box."""
+    n, T, ns = z.shape
+    nu = ns - nx - 2 * nlam
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                out[j, k, a] = z[j, k, a] + w[j, k, a]
+            for a in range(nx):
+                out[j, k, a] = min(max(out[j, k, a], box[0, a]), box[1, a])
+    lam, eta = _c3plus_pairs(out[:, :, nx:nx + nlam], out[:, :, ns - nlam:], sqrt_lam,
+                             sqrt_eta)
+    out[:, :, nx:nx + nlam] = lam
+    out[:, :, ns - nlam:] = eta
+    for k in range(T):
+        for a in range(nx + nlam, nx + nlam + nu):
+            lower, upper = box[0, a - nlam], box[1, a - nlam]
+            if shared and n > 1:
+                s = zero
+                for j in range(n):
+                    s += p[j] * out[j, k, a]
+                s = min(max(s, lower), upper)
+                for j in range(n):
+                    out[j, k, a] = s
+            else:
+                for j in range(n):
+                    out[j, k, a] = min(max(out[j, k, a], lower), upper)
