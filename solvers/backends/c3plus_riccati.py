@@ -1,20 +1,22 @@
 """``c3plus_riccati``: the C3+ QP step by ``eta`` elimination and a Riccati recursion.
 
-A thin adapter over :mod:`c3bench.solvers.fast` (the algorithm and its derivation live there):
-it reads the per-step blocks of ``P`` and ``q`` of a ``c3plus_qp`` instance (declining a ``P``
-that couples time steps), the attached LCS and ``x0``, checks that ``A z = b`` is the LCS's
-structure (:func:`~c3bench.solvers.fast.structure_of`), solves
-(:func:`~c3bench.solvers.fast.solve_structured`) and returns the equality duals from the
-stationarity of the ``x`` and ``eta`` columns (:func:`~c3bench.solvers.fast.equality_duals`).
+A thin adapter over :mod:`c3bench.solvers.riccati_qp` and :mod:`c3bench.solvers.riccati` (the
+algorithm and its derivation live there): it reads the per-step blocks of ``P`` and ``q`` of a
+``c3plus_qp`` instance (declining a ``P`` that couples time steps), the attached LCS and
+``x0``, checks that ``A z = b`` is the LCS's structure
+(:func:`~c3bench.solvers.riccati_qp.structure_of`), solves
+(:func:`~c3bench.solvers.riccati_qp.solve_structured`) and returns the equality duals from the
+stationarity of the ``x`` and ``eta`` columns
+(:func:`~c3bench.solvers.riccati_qp.equality_duals`).
 
 ``settings.options`` may set ``jacobi``, ``ridge``, ``symmetrize`` and ``rollout``
-(:class:`~c3bench.solvers.fast.RiccatiOptions`); ``settings.precision`` picks float64 or
+(:class:`~c3bench.solvers.riccati.RiccatiOptions`); ``settings.precision`` picks float64 or
 float32. A direct method: ``iterations`` is 1.
 
 Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
-reading the structure (:func:`~c3bench.solvers.fast.structure_of`: the per-step blocks of the
-LCS and the cost); solve is :func:`~c3bench.solvers.fast.solve_structured`, whose backward
-Riccati recursion factorises ``Q_vv`` step by step interleaved with the rollout (the
+reading the structure (:func:`~c3bench.solvers.riccati_qp.structure_of`: the per-step blocks of
+the LCS and the cost); solve is :func:`~c3bench.solvers.riccati_qp.solve_structured`, whose
+backward Riccati recursion factorises ``Q_vv`` step by step interleaved with the rollout (the
 factorisations cannot be split from it), and the equality duals.
 
 References
@@ -33,13 +35,9 @@ from c3bench.problems.instance import Problem
 from c3bench.problems.mpc import HorizonLayout
 from c3bench.problems.names import Failure, Family, Precision
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
-from c3bench.solvers.fast import (
-    RiccatiOptions,
-    equality_duals,
-    solve_structured,
-    structure_of,
-)
 from c3bench.solvers.registry import register
+from c3bench.solvers.riccati import RiccatiOptions
+from c3bench.solvers.riccati_qp import equality_duals, solve_structured, structure_of
 from c3bench.solvers.timing import Stopwatch
 
 RICCATI_OPTIONS: tuple[str, ...] = ("jacobi", "ridge", "symmetrize", "rollout")
