@@ -234,9 +234,30 @@ def cmd_closed_loop_trials(args: argparse.Namespace) -> int:
     return _missing(run)
 
 
+def add_controller_options(parser: argparse.ArgumentParser, spec: Any) -> None:
+    """The controller choice shared by ``closed-loop`` and ``closed-loop-trials``:
+    ``--controller``, ``--qp-backend``, ``--model-l``, ``--samples``, ``--feedback`` and
+    ``--contact-model``, defaults from ``spec`` (a :class:`ControllerSpec`)."""
+    from c3bench.bench.closed_loop import CONTROLLERS
+
+    parser.add_argument("--controller", choices=CONTROLLERS, default=spec.controller,
+                        help=f"controller (default: {spec.controller})")
+    parser.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
+                        help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    parser.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
+                        help=f"cube side of the model (m; default: {spec.model_l:g})")
+    parser.add_argument("--samples", type=positive_int, default=spec.samples, metavar="N",
+                        help=f"robust variants: sampled models (default: {spec.samples})")
+    parser.add_argument("--feedback", action="store_true",
+                        help="low-level PD tracking of the plan's ball motion between steps")
+    parser.add_argument("--contact-model", default="anitescu", metavar="MODEL",
+                        help="contact model of the controller's LCS: anitescu (default) or "
+                             "stewart-trinkle")
+
+
 def add_closed_loop(sub: Any) -> None:
     """``closed-loop``, ``closed-loop-trials``, ``closed-loop-suite`` and ``sweep``."""
-    from c3bench.bench.closed_loop import CONTROLLERS, ControllerSpec
+    from c3bench.bench.closed_loop import ControllerSpec
     from c3bench.bench.closed_loop_suite import (
         CLOSED_LOOP_SUITES,
         SWEEP_DTS,
@@ -250,10 +271,7 @@ def add_closed_loop(sub: Any) -> None:
     loop = sub.add_parser("closed-loop", help="drive the MuJoCo cube with C3 / C3+",
                           description="One closed-loop run: the controller replans every dt "
                                       "from the measured MuJoCo state.")
-    loop.add_argument("--controller", choices=CONTROLLERS, default=spec.controller,
-                      help=f"controller (default: {spec.controller})")
-    loop.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
-                      help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    add_controller_options(loop, spec)
     loop.add_argument("--projection", default=spec.projection, metavar="NAME",
                       help=f"C3's MIQP projection backend (default: {spec.projection})")
     loop.add_argument("--rho-schedule", choices=RHO_SCHEDULES, default=spec.rho_schedule,
@@ -261,14 +279,8 @@ def add_closed_loop(sub: Any) -> None:
     loop.add_argument("--iterations", type=positive_int, default=spec.admm_iterations,
                       metavar="N",
                       help=f"ADMM iterations per step (default: {spec.admm_iterations})")
-    loop.add_argument("--samples", type=positive_int, default=spec.samples, metavar="N",
-                      help=f"robust variants: sampled models (default: {spec.samples})")
     loop.add_argument("--no-weighting", action="store_true",
                       help="robust variants: uniform sample weights")
-    loop.add_argument("--feedback", action="store_true",
-                      help="low-level PD tracking of the plan's ball motion between steps")
-    loop.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
-                      help=f"cube side of the model (m; default: {spec.model_l:g})")
     loop.add_argument("--duration", type=positive_float, default=3.0, metavar="S",
                       help="seconds of simulation, a multiple of dt (default: 3; success "
                            "needs at least 3)")
@@ -277,9 +289,6 @@ def add_closed_loop(sub: Any) -> None:
                       help="seconds per QP (and C3 projection) solve, run in an isolated "
                            "child; a solve that overruns is killed and the step falls back "
                            f"(default: {spec.qp_time_limit:g})")
-    loop.add_argument("--contact-model", default="anitescu", metavar="MODEL",
-                      help="contact model of the controller's LCS: anitescu (default) or "
-                           "stewart-trinkle")
     loop.add_argument("--seed", type=nonnegative_int, default=spec.seed, metavar="N",
                       help=f"seed of the sampled model sides (default: {spec.seed})")
     loop.add_argument("--config", default=None, metavar="FILE",
@@ -296,19 +305,7 @@ def add_closed_loop(sub: Any) -> None:
                                         "randomized ball start, cube mass, friction and cube "
                                         "side (resumable); prints the success rate with its "
                                         "Wilson 95% interval and the metric medians.")
-    trials.add_argument("--controller", choices=CONTROLLERS, default=spec.controller,
-                        help=f"controller (default: {spec.controller})")
-    trials.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
-                        help=f"registry name of the QP solver (default: {spec.qp_backend})")
-    trials.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
-                        help=f"cube side of the model (m; default: {spec.model_l:g})")
-    trials.add_argument("--samples", type=positive_int, default=spec.samples, metavar="N",
-                        help=f"robust variants: sampled models (default: {spec.samples})")
-    trials.add_argument("--feedback", action="store_true",
-                        help="low-level PD tracking of the plan's ball motion between steps")
-    trials.add_argument("--contact-model", default="anitescu", metavar="MODEL",
-                        help="contact model of the controller's LCS: anitescu (default) or "
-                             "stewart-trinkle")
+    add_controller_options(trials, spec)
     trials.add_argument("--trials", type=positive_int, default=20, metavar="N",
                         help="episodes (default: 20)")
     trials.add_argument("--seed", type=nonnegative_int, default=0, metavar="S",

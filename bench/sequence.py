@@ -86,6 +86,7 @@ from c3bench.solvers.child_process import (
     send,
     stop,
 )
+from c3bench.solvers.isolation import SLOW_SOLVE_SECONDS
 from c3bench.solvers.residuals import residuals
 
 SEQUENCE_STEPS: int = REFERENCE_ADMM_ITERATIONS
@@ -99,9 +100,6 @@ REFERENCE_TOLERANCE = PROFILE_TOLERANCE[Profile.MID_ACCURACY]
 UNBOUNDED_FORCE = 1e9
 """Force limit of a recovered MPC without limits (the ``equality`` variant): it only clips the
 applied input, which the plan comparison does not read."""
-SLOW_RUN_SECONDS = 1.0
-"""A sequence whose untimed run took longer than this is timed once (its steps are long
-enough for one run; more would cost more than the timing accuracy they buy)."""
 STEP_COLUMNS: tuple[str, ...] = ("primal_residual_relative", "dual_residual_relative",
                                  "duality_gap_relative", "complementarity_violation")
 """Per-step residual figures (the row holds the worst over the steps)."""
@@ -396,7 +394,7 @@ def _sequence_child(connection: Connection, plugins: tuple[str, ...], payload: b
         with pinned_blas():
             start = time.perf_counter()
             run_once(data, job.backend, job.settings)
-            repeats = 1 if time.perf_counter() - start > SLOW_RUN_SECONDS else job.repeats
+            repeats = 1 if time.perf_counter() - start > SLOW_SOLVE_SECONDS else job.repeats
             connection.send((Reply.WARM, repeats))
             send(connection, (Reply.DONE, timed_runs(job, data, repeats)))
             send(connection, (Reply.DONE, reference_plan(job, data)))

@@ -69,7 +69,7 @@ import numpy as np
 from c3bench.problems.instance import Problem, lcp_data
 from c3bench.problems.names import Failure, Family
 from c3bench.solvers.backends._miqp import solver_time_limit
-from c3bench.solvers.backends.scip_backend import SCIP_MIN_FEASTOL
+from c3bench.solvers.backends.scip_backend import apply_settings
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.output import quiet_stdout
 from c3bench.solvers.registry import register
@@ -169,16 +169,7 @@ def _solve_once(F: np.ndarray, q: np.ndarray, bound: BigM, settings: Settings,
         model.addCons(lam[i] <= bound.lam * basic[i])
         model.addCons(w[i] <= bound.w * (1 - basic[i]))
     model.setParam("limits/solutions", 1)
-    model.setParam("limits/time", time_limit)
-    model.setParam("parallel/maxnthreads", 1)
-    if settings.sets_tolerance:
-        model.setParam("numerics/feastol", float(min(1e-6, max(settings.tolerance,
-                                                               SCIP_MIN_FEASTOL))))
-    if settings.max_iterations is not None:
-        model.setParam("limits/nodes", int(settings.max_iterations))
-    for key, value in settings.options.items():
-        if "/" in key:
-            model.setParam(key, value)
+    apply_settings(model, settings, time_limit)
     if warm_start is not None and warm_start.x is not None:
         _add_start(model, F, q, np.asarray(warm_start.x, dtype=float), lam, w, basic)
     with quiet_stdout():

@@ -27,6 +27,7 @@ S. Bolusani et al., "The SCIP Optimization Suite 9.0", arXiv:2402.17702, 2024.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -51,6 +52,22 @@ SCIP_FAILURES: dict[str, Failure] = {"timelimit": Failure.TIMEOUT,
                                      "infeasible": Failure.INFEASIBLE,
                                      "inforunbd": Failure.INFEASIBLE}
 """Failure categories of SCIP's statuses (any other unsuccessful status is an error)."""
+
+
+def apply_settings(model: Any, settings: Settings, time_limit: float) -> None:
+    """The benchmark's settings on a SCIP ``model``: feasibility tolerance (from the
+    profile, within ``[SCIP_MIN_FEASTOL, 1e-6]``), wall-clock limit, one thread, node limit
+    (``max_iterations``) and any SCIP parameter of ``settings.options`` (keys with a ``/``)."""
+    if settings.sets_tolerance:
+        model.setParam("numerics/feastol", float(min(1e-6, max(settings.tolerance,
+                                                               SCIP_MIN_FEASTOL))))
+    model.setParam("limits/time", time_limit)
+    model.setParam("parallel/maxnthreads", 1)
+    if settings.max_iterations is not None:
+        model.setParam("limits/nodes", int(settings.max_iterations))
+    for key, value in settings.options.items():
+        if "/" in key:
+            model.setParam(key, value)
 
 
 def objective_scale(problem: Problem) -> float:
@@ -110,16 +127,7 @@ class ScipMIQP(MIQPBackend):
             # SCIP's own default gap (0) makes the epigraph outer approximation branch
             # until the LP fails numerically, so the gap always comes from the settings.
             model.setParam("limits/gap", float(settings.tolerance))
-            if settings.sets_tolerance:
-                model.setParam("numerics/feastol", float(min(1e-6, max(settings.tolerance,
-                                                                       SCIP_MIN_FEASTOL))))
-            model.setParam("limits/time", solver_time_limit(settings, watch.get("setup")))
-            model.setParam("parallel/maxnthreads", 1)
-            if settings.max_iterations is not None:
-                model.setParam("limits/nodes", int(settings.max_iterations))
-            for key, value in settings.options.items():
-                if "/" in key:
-                    model.setParam(key, value)
+            apply_settings(model, settings, solver_time_limit(settings, watch.get("setup")))
             if warm_start is not None and warm_start.x is not None:
                 start = model.createSol()
                 for i, value in enumerate(np.asarray(warm_start.x, dtype=float)):
