@@ -39,6 +39,13 @@ MFLOP, so the summary shows the achieved GFLOP/s and its share of the matmul rat
 **Ratios** (:mod:`bench.perf_summary`): each configuration's median time over that of
 ``c3plus-riccati`` float64 and of ``c3-osqp`` at the same samples in the same run.
 
+**Interleaved.** For each sample count every backend is prepared and warmed up, then the
+timed steps go round-robin (step ``r`` of each backend in turn), so that a slow phase of a
+shared machine falls on every backend alike and the ratios compare like with like (measured:
+timing the backends one after another, the first one ran in a slow phase and its LCS build,
+the same code for every backend, took 1.4-2.2 times as long as the next backend's, which
+made the compiled kernel look 1.6 times faster than it is).
+
 Warm-up steps (default 2) are excluded; BLAS is pinned to one thread (threadpoolctl)
 during every measurement and the count is recorded; ``--cpu N`` pins the whole process to
 core ``N``.
@@ -226,44 +233,72 @@ def _mflop(run: _Run, config: Configuration, iterations: int) -> float:
     return flops.total / 1e6
 
 
-def _measure(run: _Run, config: Configuration, prepared: PreparedBackend, repeats: int,
-             note: str) -> list[dict[str, Any]]:
-    """Warm-up, then ``repeats`` timed steps of ``prepared.step(state_index, x, u_prev)``."""
+@dataclass
+class _Measurement:
+    """One configuration being timed: its backend, how many steps it takes, its rows."""
+
+    config: Configuration
+    prepared: PreparedBackend
+    repeats: int
+    note: str
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    failure: str | None = None
+    """Why it stopped (the skipped row's note), or ``None``."""
+
+
+def _time_step(run: _Run, m: _Measurement, r: int, load: float, threads: int) -> None:
+    """Run step ``r`` of ``m`` (a warm-up step when ``r < warmup``: not recorded)."""
+    context = run.context
+    index, x, u_prev = context.states[r % len(context.states)]
+    wall, cpu = time.perf_counter(), time.process_time()
+    parts = m.prepared.step(index, x, u_prev)
+    cpu = time.process_time() - cpu
+    wall = time.perf_counter() - wall
+    if r < context.warmup:
+        return
+    total = 1e3 * wall
+    lcs, weighting, qp, proj = (1e3 * value for value in (
+        parts.lcs, parts.weighting, parts.qp, parts.proj))
+    known = lcs + weighting + qp + (0.0 if math.isnan(proj) else proj)
+    iterations = parts.iterations if parts.iterations >= 0 else context.iterations
+    m.rows.append(_row(
+        run, m.config, repeat=r - context.warmup, state_index=index, total_ms=total,
+        lcs_ms=lcs, qp_ms=qp, proj_ms=proj, overhead_ms=max(total - known, 0.0),
+        cpu_ms=1e3 * cpu, iterations=iterations, ok=parts.ok,
+        cache_hits=parts.cache_hits, cache_misses=parts.cache_misses, note=m.note,
+        blas_threads=threads, load_avg=load, weighted=parts.weighted,
+        weighting_ms=weighting, admm_ms=1e3 * parts.admm,
+        total_no_weighting_ms=total - weighting,
+        admm_mflop=_mflop(run, m.config, iterations) if m.prepared.flop_model else math.nan))
+
+
+def _measure_interleaved(run: _Run, measurements: list[_Measurement]) -> None:
+    """Warm-up, then the timed steps of every configuration of one sample count in turn
+    (round ``r`` runs step ``r`` of each), so that a slow phase of a shared machine falls on
+    every backend alike. A backend that raises stops (its ``failure`` says why); the others
+    go on."""
     from c3bench.solvers.timing import blas_threads, single_thread_blas
 
-    context = run.context
-    rows = []
-    load = load_average()
+    warmup = run.context.warmup
     gc.collect()
     with single_thread_blas():
-        threads = blas_threads()
-        for r in range(context.warmup + repeats):
-            index, x, u_prev = context.states[r % len(context.states)]
-            wall, cpu = time.perf_counter(), time.process_time()
-            parts = prepared.step(index, x, u_prev)
-            cpu = time.process_time() - cpu
-            wall = time.perf_counter() - wall
-            if r < context.warmup:
-                continue
-            total = 1e3 * wall
-            lcs, weighting, qp, proj = (1e3 * value for value in (
-                parts.lcs, parts.weighting, parts.qp, parts.proj))
-            known = lcs + weighting + qp + (0.0 if math.isnan(proj) else proj)
-            iterations = parts.iterations if parts.iterations >= 0 else context.iterations
-            rows.append(_row(
-                run, config, repeat=r - context.warmup, state_index=index, total_ms=total,
-                lcs_ms=lcs, qp_ms=qp, proj_ms=proj, overhead_ms=max(total - known, 0.0),
-                cpu_ms=1e3 * cpu, iterations=iterations, ok=parts.ok,
-                cache_hits=parts.cache_hits, cache_misses=parts.cache_misses, note=note,
-                blas_threads=threads, load_avg=load, weighted=parts.weighted,
-                weighting_ms=weighting, admm_ms=1e3 * parts.admm,
-                total_no_weighting_ms=total - weighting,
-                admm_mflop=_mflop(run, config, iterations) if prepared.flop_model
-                else math.nan))
-    compile_seconds = prepared.compile_seconds()
-    for row in rows:
-        row["compile_s"] = compile_seconds
-    return rows
+        threads, load = blas_threads(), load_average()
+        for r in range(warmup + max((m.repeats for m in measurements), default=0)):
+            for m in measurements:
+                if m.failure is not None or r >= warmup + m.repeats:
+                    continue
+                spec = backend_spec(m.config.backend)
+                assert spec is not None  # checked by PerfSettings
+                try:
+                    _time_step(run, m, r, load, threads)
+                except BackendUnavailable as error:
+                    m.failure = str(error)
+                except Exception as error:  # noqa: BLE001 (a backend that raises: skipped)
+                    m.failure = f"{spec.failure}: {type(error).__name__}: {error}"
+    for m in measurements:
+        compile_seconds = m.prepared.compile_seconds()
+        for row in m.rows:
+            row["compile_s"] = compile_seconds
 
 
 def run_perf(settings: PerfSettings, echo: Callable[[str], None] | None = print
@@ -315,11 +350,15 @@ def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.
         f"{MATMUL_REPEATS}): float64 "
         f"{run.rates.float64:.1f} GFLOP/s, float32 {run.rates.float32:.1f} GFLOP/s")
     rows: list[dict[str, Any]] = []
-    for config in _configurations(settings):
-        new = _run_one(run, settings, config, say)
-        rows.extend(new)
-        if not new[0]["skipped"]:  # with the ratios to what this run measured so far
-            say(_config_line(pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS)), config))
+    configurations = _configurations(settings)
+    for samples in settings.samples:
+        group = [c for c in configurations if c.samples == samples]
+        rows.extend(_run_group(run, settings, group, say))
+        frame = pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
+        for config in group:  # with the ratios to what this run measured so far
+            line = _config_line(frame, config)
+            if line:
+                say(line)
     frame = pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
     say(f"# summary (ratios t / t_ref within this run; load average now "
         f"{load_average():.2f})")
@@ -332,30 +371,38 @@ def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.
     return frame
 
 
-def _run_one(run: _Run, settings: PerfSettings, config: Configuration,
-             say: Callable[[str], None]) -> list[dict[str, Any]]:
-    label = (f"{config.backend:<15} {config.precision:<8} {config.device:<4} "
-             f"samples={config.samples:<5}")
-    spec = backend_spec(config.backend)
-    assert spec is not None  # checked by PerfSettings
+def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
+               say: Callable[[str], None]) -> list[dict[str, Any]]:
+    """Prepare every configuration of one sample count, time them interleaved
+    (:func:`_measure_interleaved`) and return their rows (a skipped row for each that could
+    not run)."""
+    rows: list[dict[str, Any]] = []
 
-    def skip(note: str) -> list[dict[str, Any]]:
-        say(f"{label} skipped: {note}")
-        return [_row(run, config, skipped=True, note=note, load_avg=load_average())]
+    def skip(config: Configuration, note: str) -> None:
+        say(f"{config.backend:<15} {config.precision:<8} {config.device:<4} "
+            f"samples={config.samples:<5} skipped: {note}")
+        rows.append(_row(run, config, skipped=True, note=note, load_avg=load_average()))
 
-    try:
-        prepared = spec.make(run.context, config)
-    except BackendUnavailable as error:
-        return skip(str(error))
-    repeats, note = settings.repeats, ""
-    if prepared.repeats is not None and prepared.repeats < settings.repeats:
-        repeats, note = prepared.repeats, f"repeats cut to {prepared.repeats} ({prepared.note})"
-    try:
-        rows = _measure(run, config, prepared, repeats, note)
-    except BackendUnavailable as error:
-        return skip(str(error))
-    except Exception as error:  # noqa: BLE001 (a backend that raises is a skipped row)
-        return skip(f"{spec.failure}: {type(error).__name__}: {error}")
+    measurements: list[_Measurement] = []
+    for config in group:
+        spec = backend_spec(config.backend)
+        assert spec is not None  # checked by PerfSettings
+        try:
+            prepared = spec.make(run.context, config)
+        except BackendUnavailable as error:
+            skip(config, str(error))
+            continue
+        repeats, note = settings.repeats, ""
+        if prepared.repeats is not None and prepared.repeats < settings.repeats:
+            repeats, note = prepared.repeats, \
+                f"repeats cut to {prepared.repeats} ({prepared.note})"
+        measurements.append(_Measurement(config, prepared, repeats, note))
+    _measure_interleaved(run, measurements)
+    for m in measurements:
+        if m.failure is None:
+            rows.extend(m.rows)
+        else:
+            skip(m.config, m.failure)
     return rows
 
 

@@ -3,6 +3,7 @@ checked)."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -81,3 +82,44 @@ def test_any_qp_backend_can_sit_inside_the_reference_controller() -> None:
     assert backend_spec("c3-nope") is None and backend_spec("riccati") is None
     with pytest.raises(InputError, match="--backend: unknown backends"):
         PerfSettings(backends=("c3-nope",))
+
+
+def test_backends_are_timed_interleaved_and_a_failing_one_is_skipped(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every backend of one sample count is warmed up, then step ``r`` of each runs in turn
+    (a slow phase of the machine falls on all alike); a backend that raises mid-run becomes
+    one skipped row and the others keep their rows."""
+    from c3bench.bench import perf_backends
+    from c3bench.bench.perf_backends import BACKEND_TABLE, PreparedBackend, StepParts
+
+    calls: list[tuple[str, int]] = []
+
+    def factory(name: str, fail_at: int | None = None) -> perf_backends.Factory:
+        def make(context: perf_backends.PerfContext, config: Configuration) -> PreparedBackend:
+            count = [0]
+
+            def step(index: int, x: np.ndarray, u_prev: np.ndarray) -> StepParts:
+                calls.append((name, config.samples))
+                count[0] += 1
+                if fail_at is not None and count[0] > fail_at:
+                    raise FloatingPointError("diverged")
+                return StepParts(lcs=1e-4, weighting=0.0, admm=1e-4, qp=1e-4, proj=0.0,
+                                 ok=True)
+            return PreparedBackend(step)
+        return make
+
+    table = dict(BACKEND_TABLE)
+    table["c3plus-riccati"] = dataclasses.replace(table["c3plus-riccati"], make=factory("a"))
+    table["c3plus-compiled"] = dataclasses.replace(table["c3plus-compiled"],
+                                                   make=factory("b", fail_at=3))
+    monkeypatch.setattr(perf_backends, "BACKEND_TABLE", table)
+    settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3plus-compiled"),
+                            repeats=3, warmup=1, iterations=1, results_dir=tmp_path)
+    frame = run_perf(settings, echo=None)
+    # one sample count after the other; within it, a and b alternate step by step
+    assert calls[:8] == [("a", 1), ("b", 1)] * 4
+    assert calls[8:] == [("a", 2), ("b", 2)] * 4
+    timed = frame[~frame["skipped"].astype(bool)]
+    assert (timed["backend"] == "c3plus-riccati").all() and len(timed) == 2 * 3
+    skipped = frame[frame["skipped"].astype(bool)]
+    assert len(skipped) == 2 and skipped["note"].str.contains("FloatingPointError").all()
