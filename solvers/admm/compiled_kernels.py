@@ -105,9 +105,9 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
 
     Lanes (lane ``i n + j``: rho ``i``, sample ``j``) are worked in blocks of at most
     :data:`LANE_BLOCK` in contiguous local arrays with the lane index last (so the innermost
-    loops vectorise across lanes); the results are copied out with the samples last (so
-    the linear passes of :func:`c3bench.solvers.admm.compiled_passes.solve_project`
-    vectorise across samples).
+    loops vectorise across lanes); the results are copied out, one run of consecutive
+    samples of one rho at a time, with the samples last (so the linear passes of
+    :func:`c3bench.solvers.admm.compiled_passes.solve_project` vectorise across samples).
     """
     m, n = base.shape[0], A.shape[0]
     nx, nv = A.shape[1], Bv.shape[2]
@@ -124,66 +124,104 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     li, lj = np.empty(LB, np.int64), np.empty(LB, np.int64)
     for l0 in range(0, lanes, LB):
         nl = min(LB, lanes - l0)
-        _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, n,
-                     l0, nl, Hy, S, Db, ABb)
-        fb[:] = -1
         for l in range(nl):
             li[l], lj[l] = (l0 + l) // n, (l0 + l) % n
+        _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
+                     nl, Hy, S, Db, ABb, sv)
+        fb[:] = -1
         for k in range(T - 1, -1, -1):
             _riccati_lanes(k, nl, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, Y, sv, Kb, Lb, Li,
                            fb)
-            # lane l0 + l is (rho li[l], sample lj[l]); samples are the factors' last axis
-            for a in range(nv):
-                for b in range(nx):
-                    for l in range(nl):
-                        K[li[l], k, a, b, lj[l]] = Kb[a, b, l]
-                for b in range(a + 1):  # lower triangle (the rest stays 0)
-                    for l in range(nl):
-                        L[li[l], k, a, b, lj[l]] = Lb[a, b, l]
-            for a in range(nx):
-                for l in range(nl):
-                    Sd[li[l], k, a, lj[l]] = SAB[a, ny, l]
-        for l in range(nl):
-            i, j = li[l], lj[l]
-            failed[i, j] = fb[l]
-            for a in range(ny):
-                D[i, a, j] = Db[a, l]
-            for a in range(nx):
-                for b in range(ny + 1):
-                    ABd[i, a, b, j] = ABb[a, b, l]
+            _store_step(k, l0, nl, n, Kb, Lb, SAB, K, L, Sd)
+        _store_block(l0, nl, n, fb, Db, ABb, failed, D, ABd)
+
+
+@jit
+def _store_step(k: int, l0: int, nl: int, n: int, Kb: np.ndarray, Lb: np.ndarray,
+                SAB: np.ndarray, K: np.ndarray, L: np.ndarray, Sd: np.ndarray) -> None:
+    """Copy step ``k`` of the block's lanes ``l0 .. l0 + nl`` (``K``, the lower triangle of
+    ``L``, ``S_{k+1} d``) out, one run of consecutive samples of one rho at a time."""
+    nv, nx = Kb.shape[0], Kb.shape[1]
+    ny = SAB.shape[1] - 1
+    l = 0
+    while l < nl:
+        i, j0 = (l0 + l) // n, (l0 + l) % n
+        run = min(n - j0, nl - l)
+        for a in range(nv):
+            for b in range(nx):
+                for q in range(run):
+                    K[i, k, a, b, j0 + q] = Kb[a, b, l + q]
+            for b in range(a + 1):  # lower triangle (the rest stays 0)
+                for q in range(run):
+                    L[i, k, a, b, j0 + q] = Lb[a, b, l + q]
+        for a in range(nx):
+            for q in range(run):
+                Sd[i, k, a, j0 + q] = SAB[a, ny, l + q]
+        l += run
+
+
+@jit
+def _store_block(l0: int, nl: int, n: int, fb: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
+                 failed: np.ndarray, D: np.ndarray, ABd: np.ndarray) -> None:
+    """Copy the block's failures, scaling and scaled ``[A B_v d]`` out (as
+    :func:`_store_step`)."""
+    ny, nx = Db.shape[0], ABb.shape[0]
+    l = 0
+    while l < nl:
+        i, j0 = (l0 + l) // n, (l0 + l) % n
+        run = min(n - j0, nl - l)
+        for q in range(run):
+            failed[i, j0 + q] = fb[l + q]
+        for a in range(ny):
+            for q in range(run):
+                D[i, a, j0 + q] = Db[a, l + q]
+        for a in range(nx):
+            for b in range(ny + 1):
+                for q in range(run):
+                    ABd[i, a, b, j0 + q] = ABb[a, b, l + q]
+        l += run
 
 
 @jit
 def _scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                  base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray, ridge: Any,
-                 jacobi: bool, zero: Any, one: Any, n: int, l0: int, nl: int, Hy: np.ndarray,
-                 S: np.ndarray, Db: np.ndarray, ABb: np.ndarray) -> None:
+                 jacobi: bool, zero: Any, one: Any, li: np.ndarray, lj: np.ndarray, nl: int,
+                 Hy: np.ndarray, S: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
+                 scratch: np.ndarray) -> None:
     """``H_y`` scaled to a unit diagonal (plus ridge), ``D``, the scaled ``[A B_v d]`` and
-    ``S_T = D_x P_T D_x`` of the lanes ``l0 .. l0 + nl``."""
+    ``S_T = D_x P_T D_x`` of the ``nl`` lanes (rho ``li[l]``, sample ``lj[l]``); lane
+    index innermost in every loop."""
     nx, nv = A.shape[1], Bv.shape[2]
     ny = nx + nv
     for l in range(nl):
-        lane = l0 + l
-        i, j = lane // n, lane % n
-        for a in range(ny):
-            for b in range(ny):
-                Hy[a, b, l] = MtM[j, a, b] * two_rho_eta[i] + base[i, a, b]
-        for a in range(ny):
+        scratch[l] = two_rho_eta[li[l]]
+    for a in range(ny):
+        for b in range(ny):
+            for l in range(nl):
+                Hy[a, b, l] = MtM[lj[l], a, b] * scratch[l] + base[li[l], a, b]
+    for a in range(ny):
+        for l in range(nl):
             h = Hy[a, a, l]
             Db[a, l] = one / np.sqrt(h) if (jacobi and h > zero) else one
-        for a in range(ny):
-            for b in range(ny):
+    for a in range(ny):
+        for b in range(ny):
+            for l in range(nl):
                 Hy[a, b, l] = Hy[a, b, l] * Db[a, l] * Db[b, l]
-        for a in range(nx, ny):
+    for a in range(nx, ny):
+        for l in range(nl):
             Hy[a, a, l] += ridge
-        for a in range(nx):
-            inv = one / Db[a, l]
-            for b in range(nx):
-                ABb[a, b, l] = A[j, a, b] * inv * Db[b, l]
+    for a in range(nx):
+        for l in range(nl):
+            scratch[l] = one / Db[a, l]
+        for b in range(nx):
+            for l in range(nl):
+                ABb[a, b, l] = A[lj[l], a, b] * scratch[l] * Db[b, l]
                 S[a, b, l] = PT[a, b] * Db[a, l] * Db[b, l]
-            for b in range(nv):
-                ABb[a, nx + b, l] = Bv[j, a, b] * inv * Db[nx + b, l]
-            ABb[a, ny, l] = d[j, a] * inv
+        for b in range(nv):
+            for l in range(nl):
+                ABb[a, nx + b, l] = Bv[lj[l], a, b] * scratch[l] * Db[nx + b, l]
+        for l in range(nl):
+            ABb[a, ny, l] = d[lj[l], a] * scratch[l]
 
 
 @jit
@@ -268,3 +306,4 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
         for b in range(a + 1, nx):
             for l in range(nl):
                 S[b, a, l] = S[a, b, l]
+
