@@ -73,6 +73,7 @@ from c3bench.problems.names import (
     Profile,
     Variant,
 )
+from c3bench.problems.recover import mismatches, mpc_from_cost
 from c3bench.solvers.admm.options import ENUMERATION, C3Options
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart, settings_for
 from c3bench.solvers.child_process import (
@@ -133,9 +134,10 @@ def controller_data(problem: Problem) -> ControllerData:
 
     With ``g`` the consensus weights (``meta["rho"]``): ``Q = P_{x_0 x_0} / 2 - rho_x I``,
     ``R = P_{u_0 u_0} / 2 - rho_u I``, ``Q_f = P_{x_T x_T} / 2`` and ``x*`` the least-squares
-    solution of ``2 Q_f x* = -q_{x_T}``; the limits from ``meta["limits"]`` (``bounded``).
-    The instance is then rebuilt with :func:`c3bench.problems.families.consensus_qp` and must
-    match ``P``, ``q``, ``A``, ``b``, the bounds and the offset, else
+    solution of ``2 Q_f x* = -q_{x_T}`` (:func:`c3bench.problems.recover.mpc_from_cost`); the
+    limits from ``meta["limits"]`` (``bounded``). The instance is then rebuilt with
+    :func:`c3bench.problems.families.consensus_qp` and must match ``P``, ``q``, ``A``, ``b``,
+    the bounds and the offset (:func:`c3bench.problems.recover.mismatches`), else
     :class:`SequenceUnsupported`.
     """
     needed = ("layout", "rho")
@@ -145,15 +147,8 @@ def controller_data(problem: Problem) -> ControllerData:
                                   "data['x0'], meta['layout'] and meta['rho']")
     layout = HorizonLayout.from_json(problem.meta["layout"])
     rho = {str(k): float(v) for k, v in dict(problem.meta["rho"]).items()}
-    T = layout.horizon
-    sx, su, sT = layout.index(0, Block.X), layout.index(0, Block.U), layout.index(T, Block.X)
-    Q = problem.P[sx, sx] / 2.0 - rho[Block.X] * np.eye(layout.nx)
-    R = problem.P[su, su] / 2.0 - rho[Block.U] * np.eye(layout.nu)
-    Q_f = problem.P[sT, sT] / 2.0
-    x_target = np.linalg.lstsq(2.0 * Q_f, -problem.q[sT], rcond=None)[0]
     limits = Limits.from_json(problem.meta["limits"]) if "limits" in problem.meta else None
-    mpc = MPC(Q=Q, R=R, Q_f=Q_f, x_target=x_target, horizon=T, dt=problem.lcs.dt,
-              force_limit=_force_limit(limits), limits=limits)
+    mpc = mpc_from_cost(problem, layout, _force_limit(limits), limits, rho)
     _check_rebuilt(problem, mpc, rho, limits)
     variant = Variant.C3PLUS if problem.family == Family.C3PLUS_QP else Variant.C3
     assert problem.lcs is not None  # checked above
@@ -171,25 +166,10 @@ def _check_rebuilt(problem: Problem, mpc: MPC, rho: dict[str, float],
             input_bounds=bool(problem.meta.get("input_bounds", False)), limits=limits)
     except ValueError as error:
         raise SequenceUnsupported(f"cannot rebuild the QP step: {error}") from error
-    scale = max(1.0, float(np.max(np.abs(problem.P))))
-    pairs = {"P": (rebuilt.P, problem.P), "q": (rebuilt.q, problem.q),
-             "A": (rebuilt.A, problem.A), "b": (rebuilt.b, problem.b),
-             "lb": (rebuilt.lb, problem.lb), "ub": (rebuilt.ub, problem.ub)}
-    wrong = [name for name, (a, b) in pairs.items() if not _same(a, b, scale)]
-    if not math.isclose(rebuilt.objective_offset, problem.objective_offset, rel_tol=1e-9,
-                        abs_tol=1e-9 * scale):
-        wrong.append("offset")
+    wrong = mismatches(rebuilt, problem)
     if wrong:
         raise SequenceUnsupported(f"not a QP step of problems.families.consensus_qp's form "
                                   f"(mismatch in {', '.join(wrong)})")
-
-
-def _same(a: np.ndarray | None, b: np.ndarray | None, scale: float) -> bool:
-    """Both absent, or equal to 1e-9 (relative, and of ``scale``); infinite bounds equal."""
-    if a is None or b is None:
-        return a is None and b is None
-    return a.shape == b.shape and bool(np.allclose(a, b, rtol=1e-9, atol=1e-9 * scale,
-                                                   equal_nan=True))
 
 
 # --- one run, its QP steps recorded -------------------------------------------------------------

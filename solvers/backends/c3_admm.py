@@ -8,9 +8,11 @@ A thin layer over :mod:`c3bench.solvers.c3` (the ADMM lives there). From an ``mp
   ``Q_f = P_{x_T x_T} / 2`` and ``x*`` the least-squares solution of ``2 Q_f x* = -q_{x_T}``
   (any ``x*`` component with zero weight is irrelevant to the cost); the force limit from
   ``ub`` on ``u`` and the input / state limits from ``meta["limits"]`` (a bounded mpcc), which
-  the controller then enforces where its method puts them. The instance is then rebuilt with
+  the controller then enforces where its method puts them
+  (:func:`c3bench.problems.recover.mpc_from_cost`). The instance is then rebuilt with
   :func:`c3bench.problems.families.mpcc` and must match ``P``, ``q``, ``A``, ``b``, the bounds
-  and the offset (else the backend declines: the instance was not an mpcc of this form);
+  and the offset (:func:`c3bench.problems.recover.mismatches`; else the backend declines: the
+  instance was not an mpcc of this form);
 
 and runs :func:`c3bench.solvers.c3.solve_c3` from a cold start (or from ``warm_start.x``, an mpcc
 vector whose horizon steps become the initial ``delta``; ``w = 0``).
@@ -67,6 +69,7 @@ from c3bench.problems.instance import Problem
 from c3bench.problems.limits import Limits
 from c3bench.problems.mpc import MPC, HorizonLayout
 from c3bench.problems.names import Failure, Family, Precision, Variant
+from c3bench.problems.recover import mismatches, mpc_from_cost
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart
 from c3bench.solvers.c3 import C3Options, C3Solution, rollout_vector, solve_c3, to_full_steps
 from c3bench.solvers.registry import register
@@ -83,36 +86,12 @@ def mpc_from_mpcc(problem: Problem) -> MPC:
     if problem.lcs is None or "x0" not in problem.data or "layout" not in problem.meta:
         raise ValueError("an mpcc instance needs lcs, data['x0'] and meta['layout']")
     layout = HorizonLayout.from_json(problem.meta["layout"])
-    T = layout.horizon
-    sx, su, sT = layout.index(0, "x"), layout.index(0, "u"), layout.index(T, "x")
-    Q = problem.P[sx, sx] / 2.0
-    R = problem.P[su, su] / 2.0
-    Q_f = problem.P[sT, sT] / 2.0
-    x_target = np.linalg.lstsq(2.0 * Q_f, -problem.q[sT], rcond=None)[0]
-    upper = np.inf if problem.ub is None else problem.ub[su]
-    force_limit = float(np.max(upper))
+    su = layout.index(0, "u")
+    force_limit = float(np.max(np.inf if problem.ub is None else problem.ub[su]))
     limits = Limits.from_json(problem.meta["limits"]) if "limits" in problem.meta else None
-    mpc = MPC(Q=Q, R=R, Q_f=Q_f, x_target=x_target, horizon=T, dt=problem.lcs.dt,
-              force_limit=force_limit, limits=limits)
+    mpc = mpc_from_cost(problem, layout, force_limit, limits)
     rebuilt = families.mpcc(problem.name, problem.lcs, mpc, problem.data["x0"], limits=limits)
-    scale = max(1.0, float(np.max(np.abs(problem.P))))
-    assert rebuilt.A is not None and rebuilt.b is not None
-    assert rebuilt.lb is not None and rebuilt.ub is not None
-    assert rebuilt.complementarity is not None
-    checks = {
-        "P": np.allclose(rebuilt.P, problem.P, rtol=1e-12, atol=1e-12 * scale),
-        "q": np.allclose(rebuilt.q, problem.q, rtol=1e-9, atol=1e-9 * scale),
-        "A": problem.A is not None and np.array_equal(rebuilt.A, problem.A),
-        "b": problem.b is not None and np.allclose(rebuilt.b, problem.b, rtol=1e-12,
-                                                   atol=1e-12),
-        "lb": problem.lb is not None and np.array_equal(rebuilt.lb, problem.lb),
-        "ub": problem.ub is not None and np.array_equal(rebuilt.ub, problem.ub),
-        "offset": math.isclose(rebuilt.objective_offset, problem.objective_offset,
-                               rel_tol=1e-9, abs_tol=1e-9 * scale),
-        "complementarity": problem.complementarity is not None and np.array_equal(
-            rebuilt.complementarity, problem.complementarity),
-    }
-    wrong = [name for name, ok in checks.items() if not ok]
+    wrong = mismatches(rebuilt, problem)
     if wrong:
         raise ValueError(f"not an mpcc of problems.families.mpcc's form (mismatch in "
                          f"{', '.join(wrong)})")
