@@ -58,7 +58,11 @@ def convergence_traces(frame: pd.DataFrame, paths: store.SuitePaths) -> list[bas
             instance = sorted(counts[counts == counts.max()].index)[0]
             series = _trace_series(rows, paths, instance)
         if not series:
-            figure.note = "no solver reported a per-iteration residual trace for this family"
+            absent = store.absent_traces(paths, rows["trace_file"])
+            figure.note = (f"the trace files of its cells are not here ({absent} missing; "
+                           "traces/ is not committed): rerun the suite to draw it"
+                           if absent else "no solver reported a per-iteration residual "
+                           "trace for this family")
             out.append(figure)
             continue
         figure.caption = figure.caption.replace(

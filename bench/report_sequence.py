@@ -102,9 +102,14 @@ def sequence_section(frame: pd.DataFrame, paths: store.SuitePaths) -> str:
     if cells.empty:
         return ("_Not run: `c3bench run --start sequence` (or the default starts of "
                 "`c3bench run`) adds the controller-sequence cells._\n")
+    absent = store.absent_traces(paths, cells["trace_file"])
     cells = with_diagnostics(with_variants(cells), paths)
     summary = aggregate(cells)
     out = [_method(cells)]
+    if absent:
+        out.append(f"_ADMM time, plan error and input error come from the cells' trace "
+                   f"files, and {absent} of them are not here (traces/ is not committed): "
+                   f"rerun the suite to fill those columns._\n")
     keys = ["family", "variant", "settings", "precision"]
     for key, group in summary.groupby(keys, sort=True):
         family, variant, profile, precision = (str(k) for k in key)

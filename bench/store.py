@@ -323,6 +323,13 @@ def read_trace(paths: SuitePaths, relative: str) -> dict[str, Any]:
     return payload
 
 
+def absent_traces(paths: SuitePaths, relatives: Iterable[str]) -> int:
+    """How many of the named trace files (non-empty names) are not on disk (``traces/`` is
+    not committed with a suite's results: a fresh checkout has none)."""
+    return sum(1 for relative in relatives
+               if relative and not (paths.root / str(relative)).exists())
+
+
 def rows_to_frame(rows: Iterable[Mapping[str, Any]]) -> pd.DataFrame:
     """A DataFrame with exactly the schema's columns, dtypes and the canonical row order."""
     rows = [normalise_row(row) for row in rows]

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -540,6 +541,19 @@ def test_report_tables_equal_metrics_recomputed_from_rows(resumed: dict[str, Any
     assert again == text  # deterministic
     summary = pd.read_csv(paths.summary)
     assert len(summary) == len(aggregate(frame))
+
+
+def test_report_without_trace_files_says_they_are_missing(resumed: dict[str, Any],
+                                                          tmp_path: Path) -> None:
+    """A checkout has the results table but not ``traces/`` (not committed): the trace
+    figure says the files are missing instead of claiming no solver reported a trace."""
+    copy = tmp_path / "results"
+    shutil.copytree(resumed["results"], copy)
+    shutil.rmtree(copy / "tiny" / "traces")
+    text = write_report("tiny", copy).read_text()
+    assert re.search(r"Convergence traces: c3_qp\n\n\*No figure: the trace files of its "
+                     r"cells are not here \(\d+ missing", text)
+    assert not (copy / "tiny" / "figures" / "traces_c3_qp.png").exists()
 
 
 def test_compare_names_the_winners(resumed: dict[str, Any]) -> None:
