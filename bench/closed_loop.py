@@ -64,6 +64,7 @@ from c3bench.bench.closed_loop_records import (  # re-exported
     run_summary,
     write_run,
 )
+from c3bench.bench.progress import progress_bar
 from c3bench.problems.config import Config, load_config
 from c3bench.problems.scene import Plant, Scene, build_scene, home_state
 from c3bench.solvers.isolation import IsolationFailed
@@ -433,9 +434,7 @@ def _simulate_with_progress(spec: ControllerSpec, policy: Policy, cfg: Config,
     bar = None
     callback = None
     if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc=spec.label(), unit="step")
+        bar = progress_bar(True, steps, spec.label(), "step")
 
         def callback(done: int, total: int) -> None:
             bar.update(1)

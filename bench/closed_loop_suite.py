@@ -74,6 +74,7 @@ from c3bench.bench.closed_loop_report import (  # the report, re-exported for th
     write_report,
     write_trials_report,
 )
+from c3bench.bench.progress import progress_bar
 from c3bench.problems.config import Config, load_config
 from c3bench.problems.instance import atomic_write_bytes
 from c3bench.problems.scene import build_scene, home_state
@@ -297,11 +298,8 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
             jobs, log_path=directory / "solver_output.log")
         watchdog = 1800.0
         tasks = [(case.name, run_case, (case, str(cell_dir)), watchdog) for case in todo]
-        bar = None
-        if progress and tasks:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(tasks), desc=f"closed loop {directory.name}", unit="run")
+        bar = progress_bar(progress and bool(tasks), len(tasks),
+                           f"closed loop {directory.name}", "run")
         try:
             for result in pool.run(tasks):
                 if result.ok and isinstance(result.value, dict):
@@ -309,15 +307,13 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
                 else:
                     run.missing += 1
                     note_reason(run.missing_reasons, result.reason or "no row returned")
-                if bar is not None:
-                    bar.update(1)
+                bar.update(1)
         except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
             print("\n" + stopped_message(stop, f"{len(run.rows)} runs", cell_dir),
                   file=sys.stderr)
             raise
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
             pool.close()
             if run.rows:
                 _write_table(directory, run.rows, names)

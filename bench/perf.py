@@ -44,7 +44,8 @@ timed steps go round-robin (step ``r`` of each backend in turn), so that a slow 
 shared machine falls on every backend alike and the ratios compare like with like (measured:
 timing the backends one after another, the first one ran in a slow phase and its LCS build,
 the same code for every backend, took 1.4-2.2 times as long as the next backend's, which
-made the compiled kernel look 1.6 times faster than it is).
+made the compiled kernel look 1.6 times faster than it is). A progress bar (stderr) counts
+the steps of each sample count.
 
 Warm-up steps (default 2) are excluded; BLAS is pinned to one thread (threadpoolctl)
 during every measurement and the count is recorded; ``--cpu N`` pins the whole process to
@@ -94,6 +95,7 @@ from c3bench.bench.perf_flops import (
     machine_rates,
 )
 from c3bench.bench.perf_summary import format_line, format_ms, format_summary_line, summarize
+from c3bench.bench.progress import progress_bar
 from c3bench.problems.errors import InputError
 from c3bench.problems.names import Precision
 
@@ -272,7 +274,8 @@ def _time_step(run: _Run, m: _Measurement, r: int, load: float, threads: int) ->
         admm_mflop=_mflop(run, m.config, iterations) if m.prepared.flop_model else math.nan))
 
 
-def _measure_interleaved(run: _Run, measurements: list[_Measurement]) -> None:
+def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: bool = False
+                         ) -> None:
     """Warm-up, then the timed steps of every configuration of one sample count in turn
     (round ``r`` runs step ``r`` of each), so that a slow phase of a shared machine falls on
     every backend alike. A backend that raises stops (its ``failure`` says why); the others
@@ -280,6 +283,9 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement]) -> None:
     from c3bench.solvers.timing import blas_threads, single_thread_blas
 
     warmup = run.context.warmup
+    samples = measurements[0].config.samples if measurements else 0
+    bar = progress_bar(progress, sum(warmup + m.repeats for m in measurements),
+                       f"perf samples={samples}", "step")
     gc.collect()
     with single_thread_blas():
         threads, load = blas_threads(), load_average()
@@ -287,6 +293,7 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement]) -> None:
             for m in measurements:
                 if m.failure is not None or r >= warmup + m.repeats:
                     continue
+                bar.update(1)
                 spec = backend_spec(m.config.backend)
                 assert spec is not None  # checked by PerfSettings
                 try:
@@ -295,6 +302,7 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement]) -> None:
                     m.failure = str(error)
                 except Exception as error:  # noqa: BLE001 (a backend that raises: skipped)
                     m.failure = f"{spec.failure}: {type(error).__name__}: {error}"
+    bar.close()
     for m in measurements:
         compile_seconds = m.prepared.compile_seconds()
         for row in m.rows:
@@ -353,7 +361,7 @@ def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.
     configurations = _configurations(settings)
     for samples in settings.samples:
         group = [c for c in configurations if c.samples == samples]
-        rows.extend(_run_group(run, settings, group, say))
+        rows.extend(_run_group(run, settings, group, say, echo is not None))
         frame = pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
         for config in group:  # with the ratios to what this run measured so far
             line = _config_line(frame, config)
@@ -372,7 +380,7 @@ def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.
 
 
 def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
-               say: Callable[[str], None]) -> list[dict[str, Any]]:
+               say: Callable[[str], None], progress: bool) -> list[dict[str, Any]]:
     """Prepare every configuration of one sample count, time them interleaved
     (:func:`_measure_interleaved`) and return their rows (a skipped row for each that could
     not run)."""
@@ -397,7 +405,7 @@ def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
             repeats, note = prepared.repeats, \
                 f"repeats cut to {prepared.repeats} ({prepared.note})"
         measurements.append(_Measurement(config, prepared, repeats, note))
-    _measure_interleaved(run, measurements)
+    _measure_interleaved(run, measurements, progress)
     for m in measurements:
         if m.failure is None:
             rows.extend(m.rows)

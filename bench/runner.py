@@ -48,6 +48,7 @@ from c3bench.bench.planning import (
     predecessors,
     sequence_heads,
 )
+from c3bench.bench.progress import progress_bar
 from c3bench.bench.reference import (
     Reference,
     load_references,
@@ -177,15 +178,6 @@ def _suite_name(suite: Any) -> str:
     return suite if isinstance(suite, str) else str(suite.name)
 
 
-def _bar(enabled: bool, total: int, description: str, unit: str) -> Any:
-    """A tqdm progress bar (disabled when ``enabled`` is false)."""
-    from tqdm import tqdm
-
-    tqdm.monitor_interval = 0  # no monitor thread: pool workers are forked from this process
-    return tqdm(total=total, desc=description, unit=unit, disable=not enabled,
-                dynamic_ncols=True)
-
-
 def _write_run_info(paths: store.SuitePaths, plan: Plan, name: str, jobs: int,
                     scheduler: str | None, options: RunOptions, settings: Sequence[str],
                     precisions: Sequence[str], starts: Sequence[str],
@@ -228,7 +220,7 @@ def _references(pool: Executor, paths: store.SuitePaths, names: set[str],
         (n, reference_task, (shared[n], hashes[n], plan_for(problems[n].family),
                              options.reference_time_limit, options.preload),
          options.reference_budget()) for n in missing]
-    bar = _bar(progress, len(tasks), f"references {options.suite}", "instance")
+    bar = progress_bar(progress, len(tasks), f"references {options.suite}", "instance")
     try:
         for outcome in pool.run(tasks):
             if outcome.ok and isinstance(outcome.value, Reference):
@@ -354,7 +346,7 @@ def _run_cells(pool: Executor, paths: store.SuitePaths, tasks: list[Task], name:
                tally: _Tally) -> None:
     """Run the cell tasks, storing each row as it arrives; infrastructure faults store
     nothing (they are counted as missing)."""
-    bar = _bar(progress, len(tasks), f"cells {name}", "cell")
+    bar = progress_bar(progress, len(tasks), f"cells {name}", "cell")
     try:
         for outcome in pool.run(tasks):
             bar.update(1)
