@@ -12,7 +12,8 @@ instance's identity here is therefore
    configuration, not from floating-point computation), without ``objective_offset`` (a
    computed number, fingerprinted with the arrays), plus the suite manifest's ``config``
    table and ``suite`` table (generator settings; ``generator_version`` too when a
-   generator writes one) without the local path ``instances_from``; compared exactly;
+   generator writes one) without the local paths ``instances_from`` and ``imported_from``;
+   compared exactly;
 2. a **fingerprint**: SHA-256 of every array rounded on a grid relative to the array's
    largest magnitude (below), compared exactly.
 
@@ -66,8 +67,11 @@ GRID_BITS = 30
 """Grid of an array: ``2^-GRID_BITS`` of the power of two above its largest magnitude."""
 GUARD = 0.125
 """Values within this many grid units of a plain-grid boundary use the shifted grid."""
-LOCAL_KEYS: tuple[str, ...] = ("instances_from",)
-"""Manifest suite entries that describe the local machine, not the generation."""
+LOCAL_KEYS: tuple[str, ...] = ("instances_from", "imported_from")
+"""Manifest suite entries that describe the local machine, not the generation: where a run
+copied its instances from, and the folder ``problems import`` read (a path; the imported
+arrays themselves are fingerprinted), so that re-importing a folder with one file changed
+makes only that instance stale."""
 OFFSET_KEY = "objective_offset"
 """The header's computed constant, fingerprinted as a 0-d array under this key."""
 

@@ -83,6 +83,18 @@ def test_last_bit_noise_keeps_the_identity(tmp_path: Path) -> None:
     assert first.choices["q"].mask(problem.q.size)[:4].all()
 
 
+def test_the_folder_an_import_read_is_not_part_of_the_identity(tmp_path: Path) -> None:
+    """``problems import`` records the folder it read (``imported_from``, a local path):
+    re-importing from another folder, or with another file changed, keeps the identity."""
+    problem = boundary_problem()
+    imported = {"suite": {"name": "mine", "imported_from": "/home/me/qps"}}
+    first = identify(_write(problem, tmp_path / "a", imported), None, imported)
+    moved = {"suite": {"name": "mine", "imported_from": "../elsewhere"}}
+    assert identify(_write(problem, tmp_path / "b", moved), first, moved) == first
+    renamed = {"suite": {"name": "yours", "imported_from": "/home/me/qps"}}
+    assert identify(_write(problem, tmp_path / "c", renamed), first, renamed) != first
+
+
 def test_real_changes_make_a_new_identity(tmp_path: Path) -> None:
     problem = boundary_problem()
     first = identify(_write(problem, tmp_path / "a", MANIFEST_TABLE), None, MANIFEST_TABLE)
