@@ -243,6 +243,8 @@ class _Measurement:
     prepared: PreparedBackend
     repeats: int
     note: str
+    failure_prefix: str
+    """Start of the skipped row's note when a step raises (:class:`BackendSpec` ``failure``)."""
     rows: list[dict[str, Any]] = field(default_factory=list)
     failure: str | None = None
     """Why it stopped (the skipped row's note), or ``None``."""
@@ -294,14 +296,12 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
                 if m.failure is not None or r >= warmup + m.repeats:
                     continue
                 bar.update(1)
-                spec = backend_spec(m.config.backend)
-                assert spec is not None  # checked by PerfSettings
                 try:
                     _time_step(run, m, r, load, threads)
                 except BackendUnavailable as error:
                     m.failure = str(error)
                 except Exception as error:  # noqa: BLE001 (a backend that raises: skipped)
-                    m.failure = f"{spec.failure}: {type(error).__name__}: {error}"
+                    m.failure = f"{m.failure_prefix}: {type(error).__name__}: {error}"
     bar.close()
     for m in measurements:
         compile_seconds = m.prepared.compile_seconds()
@@ -362,11 +362,11 @@ def _run_perf(settings: PerfSettings, echo: Callable[[str], None] | None) -> pd.
     for samples in settings.samples:
         group = [c for c in configurations if c.samples == samples]
         rows.extend(_run_group(run, settings, group, say, echo is not None))
-        frame = pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
-        for config in group:  # with the ratios to what this run measured so far
-            line = _config_line(frame, config)
-            if line:
-                say(line)
+        # with the ratios to what this run measured so far (skipped ones were said)
+        summary = summarize(pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS)))
+        for _, line in summary[(summary["samples"] == samples)
+                               & (summary["repeats"] > 0)].iterrows():
+            say(format_summary_line(line))
     frame = pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
     say(f"# summary (ratios t / t_ref within this run; load average now "
         f"{load_average():.2f})")
@@ -404,7 +404,7 @@ def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
         if prepared.repeats is not None and prepared.repeats < settings.repeats:
             repeats, note = prepared.repeats, \
                 f"repeats cut to {prepared.repeats} ({prepared.note})"
-        measurements.append(_Measurement(config, prepared, repeats, note))
+        measurements.append(_Measurement(config, prepared, repeats, note, spec.failure))
     _measure_interleaved(run, measurements, progress)
     for m in measurements:
         if m.failure is None:
@@ -412,13 +412,3 @@ def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
         else:
             skip(m.config, m.failure)
     return rows
-
-
-def _config_line(frame: pd.DataFrame, config: Configuration) -> str:
-    """The printed summary line of ``config`` among every row measured so far."""
-    summary = summarize(frame)
-    mine = summary[(summary["backend"] == config.backend)
-                   & (summary["precision"] == config.precision)
-                   & (summary["device"] == config.device)
-                   & (summary["samples"] == config.samples)]
-    return "\n".join(format_summary_line(s) for _, s in mine.iterrows())

@@ -1,15 +1,6 @@
-"""Subproblem instances' ``.npz`` + JSON storage (the ``Problem`` contract is in
+"""Subproblem instances' ``.npz`` + JSON storage (the ``Problem`` contract, the one
+QP-with-complementarity form every family is stored in, is in
 :mod:`problems.instance_contract`, re-exported here).
-
-Every family is stored in one QP-with-complementarity form, following qpsolvers' names:
-
-    minimise    1/2 z^T P z + q^T z + objective_offset
-    subject to  A z = b,   G z <= h,   lb <= z <= ub,
-                0 <= z_i  perp  z_j >= 0   for every row (i, j) of ``complementarity``.
-
-``lcs`` holds the LCS the instance came from (optional: ``None`` for an instance without one),
-``data`` the family's own arrays (``x0``, ``delta``, ``w``, ``G_diag``, ``v``, ``U_diag``, ...),
-``meta`` its JSON metadata.
 
 Storage: ``<name>.npz`` (the arrays, written with fixed zip timestamps so that regenerating
 gives byte-identical files) and ``<name>.json`` (schema version, family, name, metadata and the

@@ -187,15 +187,20 @@ class Problem:
                 "bounded_variables": self.n_bounded, "complementarity_pairs": self.n_pairs}
 
 
-def lcp_data(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
+def lcp_data(problem: Problem, copy: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``(F, q)`` of the LCP ``0 <= lam perp F lam + q >= 0`` an ``lcp`` or ``lcp_general``
     instance states: ``(data["F"], h)`` for ``lcp_general`` (``F`` stored as is,
     :func:`c3bench.problems.families.lcp_general`), ``(P, q)`` for ``lcp`` (whose ``F`` is
-    symmetric and is the QP's Hessian)."""
+    symmetric and is the QP's Hessian). ``copy``: float64 copies a solver may overwrite
+    (the instance's own arrays otherwise)."""
     if problem.family == Family.LCP_GENERAL:
         assert problem.h is not None  # checked by Problem.validate
-        return problem.data["F"], problem.h
-    return problem.P, problem.q
+        F, q = problem.data["F"], problem.h
+    else:
+        F, q = problem.P, problem.q
+    if copy:
+        return np.array(F, dtype=np.float64), np.array(q, dtype=np.float64)
+    return F, q
 
 
 def _check_lcp_general(problem: Problem) -> None:

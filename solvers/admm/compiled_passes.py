@@ -186,21 +186,14 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
             for a in range(ny):
                 for j in range(n):
                     zt[k, ny + b, j] += Mt[b, a, j] * zt[k, a, j]
-    total = zero
     for j in range(n):
         for k in range(T):
             for a in range(ns):
                 z_steps[j, k, a] = zt[k, a, j]
-                total += zt[k, a, j]
         for a in range(nx):
             z_terminal[j, a] = zt[T, a, j]
-            total += zt[T, a, j]
-    _project(z_steps, w, new_delta, nx, nlam, consts[-2], consts[-1], p, shared, box, zero)
-    for j in range(n):
-        for k in range(T):
-            for a in range(ns):
-                new_w[j, k, a] = _dual_update(w[j, k, a], z_steps[j, k, a], new_delta[j, k, a])
-    return bool(np.isfinite(total))
+    return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, nlam, consts, p,
+                               shared, box, zero)
 
 
 @_jit
@@ -214,24 +207,35 @@ def _solve_project_samples(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray
     where vectors over samples would be too short); ``False`` when the QP solution is not
     finite.
     """
-    n, T, ns = delta.shape
-    nx = K.shape[3]
-    total = zero
-    work = _Work(delta.dtype, T, nx, K.shape[2], Mc.shape[1])
+    n, T = delta.shape[0], delta.shape[1]
+    work = _Work(delta.dtype, T, K.shape[3], K.shape[2], Mc.shape[1])
     for j in range(n):
         _solve_sample(j, vectors, delta, w, Mc, consts, K, L, Sd, D[index, :, j],
                       ABd[index, :, :, j], index, zero, z_steps, z_terminal, work)
-        for k in range(T):
-            for a in range(ns):
-                total += z_steps[j, k, a]
-        for a in range(nx):
-            total += z_terminal[j, a]
-    _project(z_steps, w, new_delta, nx, Mc.shape[1], consts[-2], consts[-1], p, shared, box,
-             zero)
+    return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, Mc.shape[1], consts,
+                               p, shared, box, zero)
+
+
+@_jit
+def _project_and_update(z_steps: np.ndarray, z_terminal: np.ndarray, w: np.ndarray,
+                        new_delta: np.ndarray, new_w: np.ndarray, nlam: int,
+                        consts: np.ndarray, p: np.ndarray, shared: bool, box: np.ndarray,
+                        zero: Any) -> bool:
+    """The end of every iteration of :func:`solve_project`: the projection of ``z + w``
+    (:func:`_project`) into ``new_delta`` and the dual update ``new_w = w + z - new_delta``
+    (entry by entry); ``False`` when the QP solution ``(z_steps, z_terminal)`` is not
+    finite."""
+    n, T, ns = z_steps.shape
+    nx = z_terminal.shape[1]
+    _project(z_steps, w, new_delta, nx, nlam, consts[-2], consts[-1], p, shared, box, zero)
+    total = zero
     for j in range(n):
         for k in range(T):
             for a in range(ns):
+                total += z_steps[j, k, a]
                 new_w[j, k, a] = _dual_update(w[j, k, a], z_steps[j, k, a], new_delta[j, k, a])
+        for a in range(nx):
+            total += z_terminal[j, a]
     return bool(np.isfinite(total))
 
 

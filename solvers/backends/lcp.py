@@ -107,9 +107,7 @@ class _LCPBackend(Backend):
         """Run the method; an unsolved LCP is ``Failure.ERROR`` with the last iterate."""
         watch = Stopwatch()
         with watch.lap("setup"):
-            matrix, offset = lcp_data(problem)
-            M = np.array(matrix, dtype=np.float64)
-            q = np.array(offset, dtype=np.float64)
+            M, q = lcp_data(problem, copy=True)
         with watch.lap("solve"):
             outcome = self._run(M, q, settings, warm_start)
         trace: dict[str, list[float]] = {}

@@ -225,9 +225,7 @@ class ScipLCP(Backend):
         """Solve with growing constants until SCIP finds a point (module docstring)."""
         watch = Stopwatch()
         with watch.lap("setup"):
-            matrix, offset = lcp_data(problem)
-            F = np.array(matrix, dtype=np.float64)
-            q = np.array(offset, dtype=np.float64)
+            F, q = lcp_data(problem, copy=True)
             bound = big_m(F, q)
         nodes = 0
         tries = 1 if bound.proved else BIG_M_TRIES
