@@ -35,7 +35,11 @@ total - weighting``, ``overhead = total - lcs - weighting - qp - proj``. For
 **Machine rate and flops.** Every run first measures the dense matmul rate in float64 and
 float32 (:func:`bench.perf_flops.machine_rates`, one BLAS thread) and stores it in every
 row; the flop model :func:`bench.perf_flops.admm_flops` gives each Riccati C3+ row's ADMM
-MFLOP, so the summary shows the achieved GFLOP/s and its share of the matmul rate.
+MFLOP (``admm_mflop``: the work of the numpy algorithm), and ``admm_mflop_executed`` the
+flops the backend executed (the compiled kernel counts its own, which are fewer: Cholesky
+instead of an inverse, symmetric products, structural zeros of ``[A B_v d]`` skipped; the
+model's for the numpy and JAX paths), so the summary shows the achieved GFLOP/s (executed
+flops per second) and its share of the matmul rate.
 **Ratios** (:mod:`bench.perf_summary`): each configuration's median time over that of
 ``c3plus-riccati`` float64 and of ``c3-osqp`` at the same samples in the same run.
 
@@ -222,6 +226,7 @@ def _row(run: _Run, config: Configuration, **values: Any) -> dict[str, Any]:
         "weighting_ms": math.nan, "admm_ms": math.nan, "total_no_weighting_ms": math.nan,
         "admm_mflop": math.nan, "matmul_gflops_f64": run.rates.float64,
         "matmul_gflops_f32": run.rates.float32, "compile_s": math.nan,
+        "admm_mflop_executed": math.nan,
     }
     row.update(values)
     return row
@@ -265,6 +270,9 @@ def _time_step(run: _Run, m: _Measurement, r: int, load: float, threads: int) ->
         parts.lcs, parts.weighting, parts.qp, parts.proj))
     known = lcs + weighting + qp + (0.0 if math.isnan(proj) else proj)
     iterations = parts.iterations if parts.iterations >= 0 else context.iterations
+    model = _mflop(run, m.config, iterations) if m.prepared.flop_model else math.nan
+    executed = model if m.prepared.executed_flops is None else \
+        m.prepared.executed_flops() / 1e6
     m.rows.append(_row(
         run, m.config, repeat=r - context.warmup, state_index=index, total_ms=total,
         lcs_ms=lcs, qp_ms=qp, proj_ms=proj, overhead_ms=max(total - known, 0.0),
@@ -273,7 +281,7 @@ def _time_step(run: _Run, m: _Measurement, r: int, load: float, threads: int) ->
         blas_threads=threads, load_avg=load, weighted=parts.weighted,
         weighting_ms=weighting, admm_ms=1e3 * parts.admm,
         total_no_weighting_ms=total - weighting,
-        admm_mflop=_mflop(run, m.config, iterations) if m.prepared.flop_model else math.nan))
+        admm_mflop=model, admm_mflop_executed=executed))
 
 
 def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: bool = False

@@ -105,6 +105,9 @@ class PreparedBackend:
     """JIT compile seconds so far (read after the warm-up)."""
     flop_model: bool = True
     """Whether :func:`bench.perf_flops.admm_flops` describes its ADMM (the Riccati C3+)."""
+    executed_flops: Callable[[], float] | None = None
+    """Flops its arithmetic executed in the last step, when it counts them (the compiled
+    kernel); ``None``: those of the flop model (which counts the numpy Riccati C3+ code)."""
 
 
 Factory = Callable[[PerfContext, Configuration], PreparedBackend]
@@ -207,8 +210,11 @@ def make_compiled(context: PerfContext, config: Configuration) -> PreparedBacken
     def compile_seconds() -> float:
         return solver.compile_seconds
 
+    def executed_flops() -> float:
+        return solver.executed_flops
+
     return PreparedBackend(batched_step(context, config, FastC3PlusController(solver)),
-                           compile_seconds=compile_seconds)
+                           compile_seconds=compile_seconds, executed_flops=executed_flops)
 
 
 def make_jax(context: PerfContext, config: Configuration) -> PreparedBackend:

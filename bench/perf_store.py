@@ -6,8 +6,8 @@
 ``figures/perf_time_vs_samples.png`` the latest run of each machine. Versions, atomic writes and
 Parquet helpers are those of :mod:`bench.store`; the perf table's own layout is versioned
 beside them (:data:`PERF_SCHEMA_VERSION`: layout 2 added the weighting, ADMM-alone, flop-model,
-matmul-rate and compile-time columns), and files of layout 1 are still read, their new
-columns NaN (:func:`upgrade_perf_frame`).
+matmul-rate and compile-time columns, layout 3 the executed flops), and files of layouts 1
+and 2 are still read, their missing columns NaN (:func:`upgrade_perf_frame`).
 """
 
 from __future__ import annotations
@@ -33,12 +33,12 @@ from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.instance import atomic_write_bytes
 
 # --- perf: control-step times -----------------------------------------------------------------
-PERF_SCHEMA_VERSION = 2
+PERF_SCHEMA_VERSION = 3
 """Version of the perf table's own layout (beside :data:`SCHEMA_VERSION`, which every table
 of :mod:`bench.store` carries): 1 without the columns of :data:`PERF_V2_COLUMNS`, 2 with
-them. Stored in the ``perf_schema_version`` column and the Parquet metadata key
-:data:`PERF_METADATA_KEY`; a file of layout 1 (neither) is read with those columns NaN
-(``False`` for ``weighted``)."""
+them but ``admm_mflop_executed``, 3 with all of them. Stored in the ``perf_schema_version``
+column and the Parquet metadata key :data:`PERF_METADATA_KEY`; a file of layout 1 (neither)
+or 2 is read with the columns it lacks NaN (``False`` for ``weighted``)."""
 PERF_METADATA_KEY = b"c3bench_perf_schema"
 PERF_SCHEMA: tuple[Column, ...] = (
     Column("schema_version", "int64", ":data:`SCHEMA_VERSION`."),
@@ -81,18 +81,25 @@ PERF_SCHEMA: tuple[Column, ...] = (
     Column("matmul_gflops_f32", "float64", "The run's dense float32 matmul rate, one thread."),
     Column("compile_s", "float64", "JIT compile seconds of the backend (in the warm-up, "
            "excluded from the step times; NaN when not compiled)."),
+    # layout 3
+    Column("admm_mflop_executed", "float64", "Flops the backend executed in the step's ADMM, "
+           "in millions: the compiled kernel's own count (fewer than the model's: Cholesky, "
+           "symmetric products, structural zeros skipped), the flop model's for the numpy and "
+           "JAX paths; NaN for the reference controller and in layouts 1-2."),
 )
 PERF_COLUMNS: tuple[str, ...] = tuple(column.name for column in PERF_SCHEMA)
 PERF_V2_COLUMNS: tuple[str, ...] = PERF_COLUMNS[PERF_COLUMNS.index("perf_schema_version"):]
-"""Columns added by perf layout 2."""
+"""Columns added by perf layouts 2 and 3 (filled with NaN, ``weighted`` ``False``, when an
+older file lacks them)."""
 PERF_READABLE: tuple[int, ...] = (1, SCHEMA_VERSION)
 """Values of :data:`SCHEMA_VERSION` whose perf tables this c3bench reads (the perf table's own
 changes are versioned by :data:`PERF_SCHEMA_VERSION`)."""
 
 
 def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
-    """The rows of a stored perf table in the current layout: a layout-1 table gets the
-    columns of :data:`PERF_V2_COLUMNS` (NaN, ``weighted`` ``False``, version 1); a newer
+    """The rows of a stored perf table in the current layout: a layout-1 or -2 table gets the
+    columns of :data:`PERF_V2_COLUMNS` it lacks (NaN, ``weighted`` ``False``; a file without
+    a layout is version 1); a newer
     layout than :data:`PERF_SCHEMA_VERSION` raises :class:`SchemaVersionError`."""
     frame = frame.copy()
     if "perf_schema_version" not in frame.columns:

@@ -7,8 +7,10 @@ median / median(c3-osqp)`` of the whole step (``total_ms``), and ``admm_ratio_*`
 the ADMM alone (``admm_ms``); below 1 is faster. NaN when the reference configuration was
 not measured in that run: machines differ by 2-4x, so only ratios within one run compare.
 
-**Rate**: ``gflops = admm_mflop / median admm_ms`` (MFLOP per ms is GFLOP/s; the flop model
-of :mod:`bench.perf_flops`), ``rate_share = gflops / matmul rate`` of the row's precision
+**Rate**: ``gflops = admm_mflop_executed / median admm_ms`` (MFLOP per ms is GFLOP/s; the
+flops the backend executed: the compiled kernel's own count, the flop model of
+:mod:`bench.perf_flops` for the numpy and JAX paths; NaN in perf layouts before 3, which
+stored the model's flops only), ``rate_share = gflops / matmul rate`` of the row's precision
 measured at the start of the same run.
 """
 
@@ -58,7 +60,7 @@ def _record(group: pd.DataFrame) -> dict[str, Any]:
     if timed.empty:
         record.update({name: math.nan for name in (
             "median_ms", "p95_ms", *MEDIAN_COLUMNS, "overhead_fraction", "admm_mflop",
-            "gflops", "rate_share")}, failed=0, weighted=False)
+            "admm_mflop_executed", "gflops", "rate_share")}, failed=0, weighted=False)
         return record
     median = _median(timed["total_ms"])
     record.update(median_ms=median, p95_ms=_p95(timed["total_ms"].astype(float).tolist()))
@@ -66,10 +68,11 @@ def _record(group: pd.DataFrame) -> dict[str, Any]:
     record["overhead_fraction"] = record["overhead_ms"] / median if median > 0 else math.nan
     record["failed"] = int((~timed["ok"].astype(bool)).sum())
     record["weighted"] = bool(timed["weighted"].astype(bool).any())
-    mflop = _median(timed["admm_mflop"])
+    executed = _median(timed["admm_mflop_executed"])
     admm = record["admm_ms"]
-    record["admm_mflop"] = mflop
-    record["gflops"] = mflop / admm if admm > 0 else math.nan
+    record["admm_mflop"] = _median(timed["admm_mflop"])
+    record["admm_mflop_executed"] = executed
+    record["gflops"] = executed / admm if admm > 0 else math.nan
     rate = record["matmul_gflops"]
     record["rate_share"] = record["gflops"] / rate if rate > 0 else math.nan
     return record

@@ -19,6 +19,8 @@ from c3bench.problems.mpc import MPC
 from c3bench.problems.names import Precision
 from c3bench.problems.scene import build_mpc, build_scene
 from c3bench.problems.suites import sample_states, scripted_push
+from c3bench.solvers.admm import compiled_kernels as kernels
+from c3bench.solvers.admm import compiled_passes as passes
 from c3bench.solvers.admm.compiled import CompiledC3PlusKernel, KernelFailure, warm_up
 from c3bench.solvers.fast import FastC3Plus, RiccatiOptions, project_c3plus_batch
 
@@ -127,6 +129,72 @@ def test_iterate_equals_riccati_step_and_projection(push: SimpleNamespace, n: in
 def test_iterate_on_random_lcs_batches(n: int, precision: Precision) -> None:
     mpc, lcs, x0 = _random_problem(n, seed=10 + n)
     _check(mpc, lcs, x0, precision, shared=True, seed=n)
+
+
+def _sparse_problem(n: int, seed: int) -> tuple[MPC, LCSBatch, np.ndarray]:
+    """:func:`_random_problem` with exact zeros in ``A``, ``B``, ``D`` and ``d``: some shared by
+    every sample (a zero column of ``B``, a zero row of ``D``), some in one sample only (so the
+    kernel's structure must be the union over the batch)."""
+    mpc, lcs, x0 = _random_problem(n, seed)
+    rng = np.random.default_rng(seed + 1)
+    A, B, D, d = (np.array(a) for a in (lcs.A, lcs.B, lcs.D, lcs.d))
+    A[:, 0, 1:] = 0.0
+    A[:, 2, :2] = 0.0
+    B[:, :, 1] = 0.0
+    D[:, 3, :] = 0.0
+    d[:, 1] = 0.0
+    for j in range(n):
+        A[j][rng.uniform(size=A[j].shape) < 0.4] = 0.0
+        D[j][rng.uniform(size=D[j].shape) < 0.4] = 0.0
+    A[0, 3, 3] = 0.0  # zero in sample 0 only
+    lcs = LCSBatch(A=A, B=B, D=D, d=d, E=lcs.E, F=lcs.F, H=lcs.H, c=lcs.c, dt=lcs.dt)
+    return mpc, lcs, x0
+
+
+@pytest.mark.parametrize("precision", list(Precision))
+@pytest.mark.parametrize("n", [1, 3, 16])
+def test_iterate_on_lcs_batches_with_exact_zeros(n: int, precision: Precision) -> None:
+    mpc, lcs, x0 = _sparse_problem(n, seed=30 + n)
+    _check(mpc, lcs, x0, precision, shared=True, seed=n)
+
+
+def test_structure_is_the_union_over_samples_and_follows_the_batch() -> None:
+    """The skipped entries are the zeros of every sample; a later batch with more nonzeros
+    (same shapes) is not solved with the earlier, sparser structure."""
+    mpc, sparse, x0 = _sparse_problem(3, seed=40)
+    dense = _random_problem(3, seed=40)[1]
+    kernel = CompiledC3PlusKernel(mpc)
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None
+    p = np.full(3, 1 / 3)
+    for lcs in (sparse, dense, sparse):
+        kernel.start(lcs, x0, p, True, plan)
+        mask = np.concatenate([np.any(lcs.A != 0, axis=0), np.any(lcs.D != 0, axis=0),
+                               np.any(lcs.B != 0, axis=0), np.any(lcs.d != 0, axis=0)[:, None]],
+                              axis=1)
+        structure = kernel.structure
+        assert structure.nonzeros == mask.sum()
+        for b in range(mask.shape[1]):
+            rows = structure.column_rows[structure.column_start[b]:structure.column_start[b + 1]]
+            assert rows.tolist() == np.flatnonzero(mask[:, b]).tolist()
+        delta, w = _warm_iterates(lcs, mpc.horizon, x0, 1)
+        expected = _reference(mpc, lcs, x0, plan[1], delta, w, p, True)
+        got = kernel.iterate(plan[1], delta, w)
+        assert all(_relative(a, b) <= 1e-9 for a, b in zip(got, expected, strict=True))
+
+
+@pytest.mark.parametrize(("nx", "nv"), [(10, 10), (4, 5), (1, 1)])
+def test_flop_counts_of_a_dense_block(nx: int, nv: int) -> None:
+    """The executed-flop counts over every entry equal the closed forms of the loops."""
+    ny = nx + nv
+    mads = (nx * nx * (ny + 1) + nx * (nv * nx + nv * (nv + 1) // 2)
+            + sum(a * (a + 1) // 2 for a in range(nv)) + nv * (nv - 1) // 2 * nx
+            + (nx + nv) * nx * (nx + 1) // 2)
+    assert kernels.factor_flops(nx, nv) == 2 * mads + nv * nx + 2 * nv
+    pattern = kernels.structure(np.eye(nx, ny + 1, dtype=bool))
+    assert pattern.nonzeros == nx
+    assert kernels.factor_flops(nx, nv, pattern) < kernels.factor_flops(nx, nv)
+    assert passes.solve_flops(nx, nv, 2, pattern) < passes.solve_flops(nx, nv, 2)
 
 
 def test_ridge_and_no_jacobi_match_the_reference(push: SimpleNamespace) -> None:

@@ -39,6 +39,7 @@ def test_short_run_records_every_phase_and_ratio(tmp_path: Path) -> None:
     riccati = timed[(timed["backend"] == "c3plus-riccati") & (timed["samples"] == 2)]
     nx, nlam, nu = lcs_dimensions(perf_context(settings))
     assert (riccati["admm_mflop"] == admm_flops(nx, nlam, nu, 7, 2, 2).total / 1e6).all()
+    assert (riccati["admm_mflop_executed"] == riccati["admm_mflop"]).all()
     assert timed[timed["backend"] == "c3-clarabel"]["admm_mflop"].isna().all()
     # one matmul rate per run, in every row
     assert timed["matmul_gflops_f64"].nunique() == 1 and timed["matmul_gflops_f64"].gt(0).all()

@@ -16,7 +16,8 @@ from c3bench.problems.errors import SchemaVersionError
 
 
 def _rows(run: str, backend: str, samples: int, totals: list[float], admm: list[float],
-          precision: str = "float64", mflop: float = math.nan) -> list[dict[str, object]]:
+          precision: str = "float64", mflop: float = math.nan,
+          executed: float | None = None) -> list[dict[str, object]]:
     rows = []
     for repeat, (total, step_admm) in enumerate(zip(totals, admm, strict=True)):
         row: dict[str, object] = {name: math.nan for name in perf_store.PERF_COLUMNS}
@@ -25,9 +26,10 @@ def _rows(run: str, backend: str, samples: int, totals: list[float], admm: list[
                    state_index=repeat, total_ms=total, admm_ms=step_admm, ok=True,
                    skipped=False, note="", weighted=samples > 1, weighting_ms=1.0,
                    total_no_weighting_ms=total - 1.0, admm_mflop=mflop,
+                   admm_mflop_executed=mflop if executed is None else executed,
                    matmul_gflops_f64=10.0, matmul_gflops_f32=20.0, load_avg=0.5,
                    iterations=10, horizon=7, cache_hits=-1, cache_misses=-1,
-                   blas_threads=1, affinity="0", perf_schema_version=2)
+                   blas_threads=1, affinity="0", perf_schema_version=3)
         rows.append(row)
     return rows
 
@@ -36,6 +38,9 @@ def _frame() -> pd.DataFrame:
     rows = (_rows("r1", "c3plus-riccati", 16, [10.0, 12.0, 14.0], [4.0, 5.0, 6.0], mflop=20.0)
             + _rows("r1", "c3plus-riccati", 1, [2.0, 2.0, 2.0], [1.0, 1.0, 1.0], mflop=1.0)
             + _rows("r1", "c3-osqp", 16, [1000.0, 1200.0], [900.0, 1000.0])
+            # a kernel that executes fewer flops than the model counts: its rate is its own
+            + _rows("r1", "c3plus-compiled", 16, [3.0, 3.0], [1.0, 1.0], mflop=20.0,
+                    executed=8.0)
             + _rows("r1", "c3plus-riccati", 16, [6.0, 6.0, 6.0], [2.0, 2.0, 2.0],
                     precision="float32", mflop=20.0)
             # another run: its riccati time must not be the denominator of run r1's rows
@@ -61,6 +66,8 @@ def test_ratios_are_within_one_run_and_the_same_samples() -> None:
     assert riccati["rate_share"] == pytest.approx(0.4)
     assert f32["rate_share"] == pytest.approx(10.0 / 20.0)
     assert math.isnan(summary.loc[("r1", "c3-osqp", "float64", 16)]["gflops"])
+    compiled = summary.loc[("r1", "c3plus-compiled", "float64", 16)]
+    assert compiled["gflops"] == pytest.approx(8.0) and compiled["admm_mflop"] == 20.0
 
 
 def test_ratios_are_nan_without_the_reference() -> None:

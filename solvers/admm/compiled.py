@@ -63,13 +63,13 @@ OFF_PLAN_CACHE = 4
 class CompiledFactors:
     """Factorisations of ``m`` rho values for ``n`` samples (:func:`kernels.factorize_batch`).
 
-    ``K`` (m, T, nv, nx, n), ``L`` (m, T, nv, nv, n), ``Sd`` (m, T, nx, n), ``D`` (m, ny, n),
-    ``ABd`` (m, nx, ny + 1, n) the scaled ``[A B_v d]`` (samples last: the linear passes work
-    the samples as vector lanes); ``failed`` (m, n): -1 or the time step whose Cholesky
-    factorisation failed.
+    ``Y`` (m, T, nv, nx, n) = ``L^-1 Q_vx``, ``L`` (m, T, nv, nv, n) lower Cholesky factors of
+    ``Q_vv``, ``Sd`` (m, T, nx, n), ``D`` (m, ny, n), ``ABd`` (m, nx, ny + 1, n) the scaled
+    ``[A B_v d]`` (samples last: the linear passes work the samples as vector lanes);
+    ``failed`` (m, n): -1 or the time step whose Cholesky factorisation failed.
     """
 
-    K: np.ndarray
+    Y: np.ndarray
     L: np.ndarray
     Sd: np.ndarray
     D: np.ndarray
@@ -79,7 +79,7 @@ class CompiledFactors:
     @classmethod
     def empty(cls, m: int, n: int, T: int, nx: int, nv: int, dtype: np.dtype[Any]
               ) -> CompiledFactors:
-        return cls(K=np.empty((m, T, nv, nx, n), dtype), L=np.zeros((m, T, nv, nv, n), dtype),
+        return cls(Y=np.empty((m, T, nv, nx, n), dtype), L=np.zeros((m, T, nv, nv, n), dtype),
                    Sd=np.empty((m, T, nx, n), dtype), D=np.empty((m, nx + nv, n), dtype),
                    ABd=np.empty((m, nx, nx + nv + 1, n), dtype),
                    failed=np.full((m, n), -1, np.int64))
@@ -87,7 +87,7 @@ class CompiledFactors:
     @property
     def shape(self) -> tuple[int, ...]:
         """``(m, n, T)``."""
-        return (self.K.shape[0], self.K.shape[4], self.K.shape[1])
+        return (self.Y.shape[0], self.Y.shape[4], self.Y.shape[1])
 
 
 def plan_group(samples: int, planned: int) -> int:
@@ -175,6 +175,15 @@ class CompiledC3PlusKernel:
         self._rho_constants: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
         self._stacked: dict[tuple[tuple[float, ...], ...], tuple[np.ndarray, np.ndarray]] = {}
         self._p = np.ones(1, self.dtype)
+        self._structure_mask: np.ndarray | None = None
+        self._structure: kernels.Structure | None = None
+        """Structural nonzeros of the batch's ``[A B_v d]`` (:class:`kernels.Structure`), set
+        by :meth:`start`."""
+        self._lane_flops = self._sample_flops = 0
+        self.flops = 0.0
+        """Floating-point operations executed since the last :meth:`start` (factorisations:
+        :func:`kernels.factor_flops` and :func:`kernels.setup_flops` per rho value and sample;
+        iterations: :func:`passes.solve_flops` per sample), over the structural nonzeros."""
         self._shared = False
         self._solve_compiled = False
 
@@ -208,6 +217,7 @@ class CompiledC3PlusKernel:
             raise InputError(f"weights must have shape ({n},), got {p.shape}")
         self._entries = {}
         self._off_plan.clear()
+        self.flops = 0.0
         self._convert(lcs)
         self._vectors[0] = x0
         self._p = p.astype(self.dtype)
@@ -255,15 +265,17 @@ class CompiledC3PlusKernel:
                              f"{w.shape}")
         out = np.empty((3, *shape), dtype)  # z_steps, new_delta, new_w
         z_terminal = np.empty((shape[0], self.nx), dtype)
-        f = entry.factors
-        args = (self._vectors, delta, w, self._arrays["Mc"], entry.consts, f.K, f.L, f.Sd, f.D,
-                f.ABd, entry.slot, self._p, self._shared, self._box, self._zero, out[0],
-                z_terminal, out[1], out[2])
+        f, pattern = entry.factors, self.structure
+        args = (self._vectors, delta, w, self._arrays["Mc"], entry.consts, f.Y, f.L, f.Sd, f.D,
+                f.ABd, entry.slot, pattern.column_start, pattern.column_rows,
+                pattern.row_start, pattern.row_columns, self._p, self._shared, self._box,
+                self._zero, out[0], z_terminal, out[1], out[2])
         if self._solve_compiled:
             ok = passes.solve_project(*args)
         else:
             ok = self._timed(passes.solve_project, *args)
             self._solve_compiled = True
+        self.flops += shape[0] * self._sample_flops
         if not ok:
             raise KernelFailure("non-finite QP solution", f"rho={dict(rho)}", True)
         return out[0], z_terminal, out[1], out[2]
@@ -297,6 +309,17 @@ class CompiledC3PlusKernel:
         Mc[:, :, ny] = lcs.c
         M = Mc[:, :, :ny]
         np.matmul(np.swapaxes(M, 1, 2), M, out=a["MtM"])
+        mask = np.zeros((nx, ny + 1), dtype=bool)
+        np.any(a["A"] != 0, axis=0, out=mask[:, :nx])
+        np.any(a["Bv"] != 0, axis=0, out=mask[:, nx:ny])
+        np.any(a["d"] != 0, axis=0, out=mask[:, ny])
+        if self._structure_mask is None or not np.array_equal(mask, self._structure_mask):
+            self._structure_mask = mask
+            self._structure = pattern = kernels.structure(mask)
+            T = self.mpc.horizon
+            self._lane_flops = T * kernels.factor_flops(nx, nv, pattern) + \
+                kernels.setup_flops(nx, nv)
+            self._sample_flops = T * passes.solve_flops(nx, nv, nlam, pattern)
 
     def _allocate(self, m: int) -> CompiledFactors:
         n, nx, nlam, nu = self._shape
@@ -370,8 +393,10 @@ class CompiledC3PlusKernel:
         started = time.perf_counter()
         self._timed(kernels.factorize_batch, a["A"], a["Bv"], a["d"], a["MtM"], stacked[0],
                     stacked[1], self._PT, self._ridge, bool(self.riccati.jacobi), self._zero,
-                    self._one, out.K, out.L, out.Sd, out.D, out.ABd, out.failed)
+                    self._one, self.structure.column_start, self.structure.column_rows, out.Y,
+                    out.L, out.Sd, out.D, out.ABd, out.failed)
         self.factor_seconds += time.perf_counter() - started
+        self.flops += len(rhos) * a["A"].shape[0] * self._lane_flops
         return keys
 
     def _constants(self, rho: Mapping[str, float], key: tuple[float, ...]
@@ -394,6 +419,14 @@ class CompiledC3PlusKernel:
                 self._rho_constants.clear()
             self._rho_constants[key] = entry
         return entry
+
+    @property
+    def structure(self) -> kernels.Structure:
+        """The structural nonzeros of the current batch's ``[A B_v d]`` (after :meth:`start`;
+        every product with it skips the rest)."""
+        if self._structure is None:
+            raise InputError("call start() before iterate()")
+        return self._structure
 
     @property
     def compile_seconds(self) -> float:

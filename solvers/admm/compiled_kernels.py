@@ -3,63 +3,72 @@
 The arithmetic is that of :mod:`solvers.fast` (module docstring there: elimination of ``eta``,
 Jacobi scaling, the Riccati recursion split into a factorisation and linear passes), written
 as loops over samples and small dense blocks so that one compiled call does the work of a whole
-batch. Two algebraic rearrangements save work without changing the exact answer:
+batch. Three rearrangements save work without changing the exact answer:
 
 * the factorisation keeps the Cholesky factor ``L`` of ``Q_vv = L L^T`` (hand-written, for
-  ``nv = nlam + nu`` of about 8) instead of ``Q_vv^-1``; with ``Y = L^-1 Q_vx``,
+  ``nv = nlam + nu`` of about 10) and ``Y = L^-1 Q_vx`` instead of ``Q_vv^-1`` and the gain;
+  with ``K = -L^-T Y``,
 
-      K = -L^-T Y,    S_k = H_xx + A^T S_{k+1} A - Y^T Y,
+      S_k = H_xx + A^T S_{k+1} A - Y^T Y,
 
   so ``S_k`` is symmetric by construction (only its upper triangle is computed) and the
-  ``Q_xv K`` product becomes the symmetric rank-``nv`` update ``Y^T Y``;
-* ``A_cl = A + B_v K`` is never formed: the backward pass uses
-  ``A_cl^T e + K^T g_v = A^T e + K^T r`` with ``r = g_v + B_v^T e`` (which it needs anyway
-  for ``kk = -Q_vv^-1 r``), and the forward pass is the rollout ``x_{k+1} = A x_k + B_v v_k +
-  d`` of the scaled dynamics.
+  ``Q_xv K`` product becomes the symmetric rank-``nv`` update ``Y^T Y``. ``K`` itself is
+  never formed: each factorisation serves one ADMM iteration, whose passes apply it as
+  ``K^T r = -Y^T (L^-1 r)`` (the backward pass solves ``L t = r`` anyway) and ``K x + kk =
+  -L^-T (Y x + t)`` (one triangular solve in place of the backward pass's), which saves the
+  ``nv^2 nx / 2`` multiply-adds of ``K`` per step and costs the passes nothing;
+* ``A_cl = A + B_v K`` is never formed: the backward pass uses ``A_cl^T e + K^T g_v = A^T e
+  + K^T r`` with ``r = g_v + B_v^T e``, and the forward pass is the rollout ``x_{k+1} = A x_k
+  + B_v v_k + d`` of the scaled dynamics;
+* every product with ``[A B_v d]`` runs over its **structural nonzeros** only
+  (:class:`Structure`: the entries that are not exactly zero in some sample of the batch,
+  found once per control step; the Jacobi scaling keeps zeros zero). A multibody LCS has
+  many: the planar cube's ``A`` is ``[[I, dt I], [0, I]]`` (15 of 100 entries) and 77 of the
+  210 entries of ``[A B_v d]`` are nonzero, which removes 40 % of the factorisation's
+  multiply-adds. Left-out terms are exact zeros and each sum keeps its order, so the result
+  is the dense one (bit for bit on the cube); a dense LCS just gets no saving.
 
 The factorisation divides by the diagonal of ``L`` through its reciprocals (one division
-per pivot instead of one per entry of ``L``, ``Y`` and ``K``; vector division is many times
+per pivot instead of one per entry of ``L`` and ``Y``; vector division is many times
 slower than multiplication), which changes results by rounding only.
 
 **Layout.** :func:`factorize_batch` works every (rho value, sample) pair as a *lane*:
 blocks of up to :data:`LANE_BLOCK` lanes sit in local arrays with the lane index last, so
 every innermost loop runs over lanes and vectorises (no sum is reassociated: ``fastmath``
-stays off); the factors are stored with the samples on the last axis, so
+stays off); the factors are copied out with the samples on the last axis, so
 :func:`c3bench.solvers.admm.compiled_passes.solve_project` (the linear passes, projection and
 dual update of one iteration) works the samples as vector lanes too, from its
 :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE` samples on (below, one sample at a
-time). Each sample's sums keep the order of :mod:`solvers.fast`. Small dense algebra
-(products, Cholesky, triangular solves) is written out by hand; nothing calls
+time). Writing the factors in place instead (lanes at an offset into the output arrays)
+measured 1.5-2.3 times slower: LLVM's vectoriser gives up on most of those loops. Small
+dense algebra (products, Cholesky, triangular solves) is written out by hand; nothing calls
 ``numpy.linalg``.
 
-Measured (planar cube, ``nx = nlam + nu = 10``, ``T = 7``, 10 rho values, 16 samples, one
-core shared with other jobs at load average 2-4): the factorisation runs at about 8.5
-GFLOP/s in this module's count (:func:`factor_flops`), about 16 % of the core's dense
-matmul rate; the innermost lane loops are short (``LANE_BLOCK``), so loop and address
-overhead, not arithmetic, bounds it.
-
-Per sample, rho and step the factorisation costs ``nx^2 (ny + 1) + nv ny nx`` (the products
-``S [A B_v d]`` and ``B_v^T S [A B_v]``, the latter on the lower triangle of ``Q_vv`` only),
-``nv^3 / 6`` (Cholesky), ``nv^2 nx`` (the two triangular solves) and ``nx (nx + 1) (nx + nv)
-/ 2`` (the upper triangle of ``A^T S A - Y^T Y``) multiply-adds (:func:`factor_flops`).
+Measured (planar cube, ``nx = nlam + nu = 10``, ``T = 7``, one core, load average below 1):
+one group of 2 rho values for 16 samples (32 lanes) takes 0.19-0.22 ms (0.30 ms dense, with
+``K``), 10 rho values for one sample 0.13 ms (0.19 ms), one rho value for 64 samples 0.39
+ms (0.59 ms). :func:`factor_flops` counts what the loops execute.
 
 Every kernel takes its scalars in the arrays' dtype (``zero``, ``one`` and the rho-derived
 constants), so that float32 arrays are worked in float32 arithmetic throughout.
 
 References: the Riccati recursion of the LQ problem (e.g. Rawlings, Mayne & Diehl, *Model
 Predictive Control*, 2nd ed., section 1.3.3); Cholesky factorisation and triangular solves
-(Golub & Van Loan, *Matrix Computations*, 4th ed., algorithms 4.2.1 and 3.1.1-3.1.2).
+(Golub & Van Loan, *Matrix Computations*, 4th ed., algorithms 4.2.1 and 3.1.1-3.1.2); skipping
+structural zeros of the dynamics as sparse linear algebra does (Davis, *Direct Methods for
+Sparse Linear Systems*, SIAM 2006, chapter 2).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, TypeVar, cast
+from typing import Any, NamedTuple, TypeVar, cast
 
 import numba
 import numpy as np
 
-__all__ = ["LANE_BLOCK", "factor_flops", "factorize_batch", "jit"]
+__all__ = ["LANE_BLOCK", "Structure", "factor_flops", "factorize_batch", "jit", "setup_flops",
+           "structure"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -72,13 +81,28 @@ def jit(function: F) -> F:
     return cast(F, numba.njit(cache=True, fastmath=False, error_model="numpy")(function))
 
 
-def factor_flops(nx: int, nv: int) -> int:
+def factor_flops(nx: int, nv: int, pattern: Structure | None = None) -> int:
     """Floating-point operations (2 per multiply-add) of one factorisation step of one
-    sample (module docstring)."""
+    sample as :func:`factorize_batch` executes it (module docstring), over the structural
+    nonzeros ``pattern`` of ``[A B_v d]`` (``None``: dense)."""
     ny = nx + nv
-    mads = nx * nx * (ny + 1) + nv * nx * nx + nv * (nv + 1) // 2 * nx + nv ** 3 // 6 \
-        + nv * nv * nx + nx * (nx + 1) * (nx + nv) // 2
-    return 2 * mads
+    pattern = pattern or Structure.dense(nx, ny)
+    counts = np.diff(pattern.column_start)
+    mads = nx * int(counts.sum())  # S [A B_v d]
+    mads += sum(int(counts[nx + a]) * (nx + a + 1) for a in range(nv))  # B_v^T S [A B_v]
+    mads += sum(b for a in range(nv) for b in range(a + 1))  # Cholesky
+    mads += nv * (nv - 1) // 2 * nx  # Y = L^-1 Q_vx
+    mads += sum(int(counts[a]) * (nx - a) for a in range(nx))  # A^T S A
+    mads += nv * nx * (nx + 1) // 2  # Y^T Y
+    return 2 * mads + nv * nx + 2 * nv  # Y's scaling, the pivots' square roots and inverses
+
+
+def setup_flops(nx: int, nv: int) -> int:
+    """Floating-point operations of one lane's setup in :func:`factorize_batch`: ``H_y``
+    (a multiply-add per entry), its scaling (two products per entry), the scaled ``[A B_v d]``
+    and ``S_T``."""
+    ny = nx + nv
+    return 4 * ny * ny + 2 * nx * (ny + 1) + 2 * nx * nx + 2 * ny
 
 
 LANE_BLOCK = 32
@@ -86,22 +110,59 @@ LANE_BLOCK = 32
 operation runs over a block of lanes, so it vectorises without reassociating any sum."""
 
 
+def structure(ABd_mask: np.ndarray) -> Structure:
+    """The structural nonzeros of ``[A B_v d]`` (``ABd_mask`` (nx, ny + 1) bool: nonzero in any
+    sample of the batch), by column and by row (:class:`Structure`)."""
+    mask = np.asarray(ABd_mask, dtype=bool)
+    nx, columns = mask.shape
+    column_rows = [np.flatnonzero(mask[:, b]) for b in range(columns)]
+    row_columns = [np.flatnonzero(mask[a, :columns - 1]) for a in range(nx)]
+    return Structure(
+        np.concatenate([[0], np.cumsum([len(r) for r in column_rows])]).astype(np.int64),
+        np.concatenate([np.zeros(0, np.int64), *column_rows]).astype(np.int64),
+        np.concatenate([[0], np.cumsum([len(c) for c in row_columns])]).astype(np.int64),
+        np.concatenate([np.zeros(0, np.int64), *row_columns]).astype(np.int64))
+
+
+class Structure(NamedTuple):
+    """Where ``[A B_v d]`` (nx, ny + 1) has entries that are not exactly zero in some sample
+    (module docstring), in compressed form: column ``b``'s rows are ``column_rows[column_start[b]
+    : column_start[b + 1]]`` and row ``a``'s columns of ``[A B_v]`` are ``row_columns[row_start[a]
+    : row_start[a + 1]]``, both in increasing order (so every sum keeps its order)."""
+
+    column_start: np.ndarray
+    column_rows: np.ndarray
+    row_start: np.ndarray
+    row_columns: np.ndarray
+
+    @classmethod
+    def dense(cls, nx: int, ny: int) -> Structure:
+        """Every entry of an (nx, ny + 1) ``[A B_v d]``."""
+        return structure(np.ones((nx, ny + 1), dtype=bool))
+
+    @property
+    def nonzeros(self) -> int:
+        """Structural nonzeros of ``[A B_v d]``."""
+        return int(self.column_start[-1])
+
+
 @jit
 def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                     base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray,
-                    ridge: Any, jacobi: bool, zero: Any, one: Any,
-                    K: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray,
-                    ABd: np.ndarray, failed: np.ndarray) -> None:
+                    ridge: Any, jacobi: bool, zero: Any, one: Any, column_start: np.ndarray,
+                    column_rows: np.ndarray, Y: np.ndarray, L: np.ndarray, Sd: np.ndarray,
+                    D: np.ndarray, ABd: np.ndarray, failed: np.ndarray) -> None:
     """Factorise ``m`` rho values for ``n`` samples (module docstring).
 
     Inputs: ``A`` (n, nx, nx), ``Bv`` (n, nx, nv), ``d`` (n, nx), ``MtM`` (n, ny, ny);
     ``base`` (m, ny, ny) = ``blockdiag(2Q + 2 rho_x I, 2 rho_lam I, 2R + 2 rho_u I)``,
-    ``two_rho_eta`` (m,), so ``H_y = base + 2 rho_eta M^T M``; ``PT`` (nx, nx).
-    Outputs (preallocated, samples on the last axis): ``K`` (m, T, nv, nx, n), ``L``
-    (m, T, nv, nv, n) lower Cholesky factors of ``Q_vv``, ``Sd`` (m, T, nx, n) =
-    ``S_{k+1} d``, ``D`` (m, ny, n) scaling, ``ABd`` (m, nx, ny + 1, n) = scaled
-    ``[A B_v d]``; ``failed`` (m, n): -1, or the (first, backward) step whose ``Q_vv`` is not
-    positive definite.
+    ``two_rho_eta`` (m,), so ``H_y = base + 2 rho_eta M^T M``; ``PT`` (nx, nx);
+    ``column_start``, ``column_rows``: the columns of :class:`Structure`.
+    Outputs (preallocated, samples on the last axis): ``Y`` (m, T, nv, nx, n) = ``L^-1
+    Q_vx``, ``L`` (m, T, nv, nv, n) lower Cholesky factors of ``Q_vv`` (the upper triangle is
+    not written), ``Sd`` (m, T, nx, n) = ``S_{k+1} d``, ``D`` (m, ny, n) scaling, ``ABd`` (m,
+    nx, ny + 1, n) = scaled ``[A B_v d]``; ``failed`` (m, n): -1, or the (first, backward)
+    step whose ``Q_vv`` is not positive definite.
 
     Lanes (lane ``i n + j``: rho ``i``, sample ``j``) are worked in blocks of at most
     :data:`LANE_BLOCK` in contiguous local arrays with the lane index last (so the innermost
@@ -112,15 +173,15 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     m, n = base.shape[0], A.shape[0]
     nx, nv = A.shape[1], Bv.shape[2]
     ny = nx + nv
-    T = K.shape[1]
+    T = Y.shape[1]
     lanes = m * n
     LB = min(LANE_BLOCK, lanes)
     dt = A.dtype
     Hy, S, Db = np.empty((ny, ny, LB), dt), np.empty((nx, nx, LB), dt), np.empty((ny, LB), dt)
-    ABb, SAB = np.empty((nx, ny + 1, LB), dt), np.empty((nx, ny + 1, LB), dt)
-    Qv, Y = np.empty((nv, ny, LB), dt), np.empty((nv, nx, LB), dt)
-    Kb, Lb = np.empty((nv, nx, LB), dt), np.zeros((nv, nv, LB), dt)
-    sv, fb, Li = np.empty(LB, dt), np.empty(LB, np.int64), np.empty((nv, LB), dt)
+    ABb, SAB = np.empty((nx, ny + 1, LB), dt), np.empty((nx, ny, LB), dt)
+    Qv, Li = np.empty((nv, ny, LB), dt), np.empty((nv, LB), dt)
+    Yb, Lb, Sdb = np.empty((nv, nx, LB), dt), np.zeros((nv, nv, LB), dt), np.empty((nx, LB), dt)
+    sv, fb = np.empty(LB, dt), np.empty(LB, np.int64)
     li, lj = np.empty(LB, np.int64), np.empty(LB, np.int64)
     for l0 in range(0, lanes, LB):
         nl = min(LB, lanes - l0)
@@ -130,19 +191,20 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
                      nl, Hy, S, Db, ABb, sv)
         fb[:] = -1
         for k in range(T - 1, -1, -1):
-            _riccati_lanes(k, nl, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, Y, sv, Kb, Lb, Li,
-                           fb)
-            _store_step(k, l0, nl, n, Kb, Lb, SAB, K, L, Sd)
+            _riccati_lanes(k, nl, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, sv, Li, fb,
+                           column_start, column_rows, Yb, Lb, Sdb)
+            _store_step(k, l0, nl, n, Yb, Lb, Sdb, Y, L, Sd)
         _store_block(l0, nl, n, fb, Db, ABb, failed, D, ABd)
 
 
 @jit
-def _store_step(k: int, l0: int, nl: int, n: int, Kb: np.ndarray, Lb: np.ndarray,
-                SAB: np.ndarray, K: np.ndarray, L: np.ndarray, Sd: np.ndarray) -> None:
-    """Copy step ``k`` of the block's lanes ``l0 .. l0 + nl`` (``K``, the lower triangle of
-    ``L``, ``S_{k+1} d``) out, one run of consecutive samples of one rho at a time."""
-    nv, nx = Kb.shape[0], Kb.shape[1]
-    ny = SAB.shape[1] - 1
+def _store_step(k: int, l0: int, nl: int, n: int, Yb: np.ndarray, Lb: np.ndarray,
+                Sdb: np.ndarray, Y: np.ndarray, L: np.ndarray, Sd: np.ndarray) -> None:
+    """Copy step ``k`` of the block's lanes ``l0 .. l0 + nl`` (``Y``, the lower triangle of
+    ``L``, ``S_{k+1} d``) out, one run of consecutive samples of one rho at a time (the
+    block's work arrays stay compact: the vectoriser handles them much better than the
+    outputs at an offset)."""
+    nv, nx = Yb.shape[0], Yb.shape[1]
     l = 0
     while l < nl:
         i, j0 = (l0 + l) // n, (l0 + l) % n
@@ -150,13 +212,13 @@ def _store_step(k: int, l0: int, nl: int, n: int, Kb: np.ndarray, Lb: np.ndarray
         for a in range(nv):
             for b in range(nx):
                 for q in range(run):
-                    K[i, k, a, b, j0 + q] = Kb[a, b, l + q]
+                    Y[i, k, a, b, j0 + q] = Yb[a, b, l + q]
             for b in range(a + 1):  # lower triangle (the rest stays 0)
                 for q in range(run):
                     L[i, k, a, b, j0 + q] = Lb[a, b, l + q]
         for a in range(nx):
             for q in range(run):
-                Sd[i, k, a, j0 + q] = SAB[a, ny, l + q]
+                Sd[i, k, a, j0 + q] = Sdb[a, l + q]
         l += run
 
 
@@ -225,29 +287,39 @@ def _scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
 
 
 @jit
-def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np.ndarray,
-                   ABb: np.ndarray, Hy: np.ndarray, SAB: np.ndarray, Qv: np.ndarray,
-                   Y: np.ndarray, sv: np.ndarray, Kb: np.ndarray, Lb: np.ndarray,
-                   Li: np.ndarray, fb: np.ndarray) -> None:
-    """One backward step for a block of ``nl`` lanes: ``S`` (``S_{k+1}`` in,
-    ``S_k`` out), ``K``, ``L`` and (in ``SAB[:, ny]``) ``S_{k+1} d`` of step ``k``; a lane
-    whose ``Q_vv`` is not positive definite gets ``k`` in ``fb`` (first failure only) and
+def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any,
+                   S: np.ndarray, ABb: np.ndarray, Hy: np.ndarray, SAB: np.ndarray,
+                   Qv: np.ndarray, sv: np.ndarray, Li: np.ndarray, fb: np.ndarray,
+                   column_start: np.ndarray, column_rows: np.ndarray, Y: np.ndarray,
+                   L: np.ndarray, Sd: np.ndarray) -> None:
+    """One backward step for a block of ``nl`` lanes: ``S`` (``S_{k+1}`` in, ``S_k`` out),
+    ``Y``, ``L`` and ``Sd = S_{k+1} d`` of step ``k``. Every product with the scaled ``[A B_v
+    d]`` (``ABb``) runs over its structural nonzeros only (:class:`Structure`, rows in
+    increasing order, so each sum keeps its order and only exact zeros are left out). A lane whose
+    ``Q_vv`` is not positive definite gets ``k`` in ``fb`` (first failure only) and
     continues on a unit pivot."""
     ny = nx + nv
-    for a in range(nx):  # SAB = S [A B_v d]
+    for a in range(nx):  # SAB = S [A B_v], Sd = S d
         for b in range(ny + 1):
             for l in range(nl):
-                SAB[a, b, l] = zero
-        for c in range(nx):
-            for b in range(ny + 1):
+                sv[l] = zero
+            for q in range(column_start[b], column_start[b + 1]):
+                c = column_rows[q]
                 for l in range(nl):
-                    SAB[a, b, l] += S[a, c, l] * ABb[c, b, l]
+                    sv[l] += S[a, c, l] * ABb[c, b, l]
+            if b < ny:
+                for l in range(nl):
+                    SAB[a, b, l] = sv[l]
+            else:
+                for l in range(nl):
+                    Sd[a, l] = sv[l]
     for a in range(nv):  # [Q_vx Q_vv] = H_v + B_v^T S [A B_v] (lower triangle of Q_vv)
         width = nx + a + 1
         for b in range(width):
             for l in range(nl):
                 Qv[a, b, l] = Hy[nx + a, b, l]
-        for c in range(nx):
+        for q in range(column_start[nx + a], column_start[nx + a + 1]):
+            c = column_rows[q]
             for b in range(width):
                 for l in range(nl):
                     Qv[a, b, l] += ABb[c, nx + a, l] * SAB[c, b, l]
@@ -257,18 +329,18 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
                 sv[l] = Qv[a, nx + b, l]
             for c in range(b):
                 for l in range(nl):
-                    sv[l] -= Lb[a, c, l] * Lb[b, c, l]
+                    sv[l] -= L[a, c, l] * L[b, c, l]
             if a == b:
                 for l in range(nl):  # branch-free (vectorises): a failed pivot becomes 1
                     positive = sv[l] > zero
                     fb[l] = k if (not positive and fb[l] < 0) else fb[l]
                     sv[l] = sv[l] if positive else one
                 for l in range(nl):
-                    Lb[a, a, l] = np.sqrt(sv[l])
-                    Li[a, l] = one / Lb[a, a, l]
+                    L[a, a, l] = np.sqrt(sv[l])
+                    Li[a, l] = one / L[a, a, l]
             else:
                 for l in range(nl):
-                    Lb[a, b, l] = sv[l] * Li[b, l]
+                    L[a, b, l] = sv[l] * Li[b, l]
     for a in range(nv):  # Y = L^-1 Q_vx
         for b in range(nx):
             for l in range(nl):
@@ -276,26 +348,16 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
         for c in range(a):
             for b in range(nx):
                 for l in range(nl):
-                    Y[a, b, l] -= Lb[a, c, l] * Y[c, b, l]
+                    Y[a, b, l] -= L[a, c, l] * Y[c, b, l]
         for b in range(nx):
             for l in range(nl):
                 Y[a, b, l] = Y[a, b, l] * Li[a, l]
-    for a in range(nv - 1, -1, -1):  # K = -L^-T Y
-        for b in range(nx):
-            for l in range(nl):
-                Kb[a, b, l] = -Y[a, b, l]
-        for c in range(a + 1, nv):
-            for b in range(nx):
-                for l in range(nl):
-                    Kb[a, b, l] -= Lb[c, a, l] * Kb[c, b, l]
-        for b in range(nx):
-            for l in range(nl):
-                Kb[a, b, l] = Kb[a, b, l] * Li[a, l]
     for a in range(nx):  # S_k = H_xx + A^T S A - Y^T Y (upper triangle, mirrored)
         for b in range(a, nx):
             for l in range(nl):
                 S[a, b, l] = Hy[a, b, l]
-        for c in range(nx):
+        for q in range(column_start[a], column_start[a + 1]):
+            c = column_rows[q]
             for b in range(a, nx):
                 for l in range(nl):
                     S[a, b, l] += ABb[c, a, l] * SAB[c, b, l]
@@ -306,4 +368,3 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any, S: np
         for b in range(a + 1, nx):
             for l in range(nl):
                 S[b, a, l] = S[a, b, l]
-

@@ -3,12 +3,12 @@
 :func:`solve_project` takes the factors of :func:`c3bench.solvers.admm.compiled_kernels.
 factorize_batch` (samples on their last axis) and does, for every sample, the gradient, the
 backward and forward passes of the Riccati recursion (arithmetic of :mod:`solvers.fast`, the
-rearrangements of :mod:`.compiled_kernels`), ``eta``, the C3+ projection (the one closed form
-of :mod:`c3bench.solvers.admm.projection`, compiled) and the loop's dual update
+rearrangements of :mod:`.compiled_kernels`: ``K`` applied through ``Y`` and ``L``,
+products with ``[A B_v d]`` over its structural nonzeros), ``eta``, the C3+ projection (the
+one closed form of :mod:`c3bench.solvers.admm.projection`, compiled) and the loop's dual update
 (:func:`c3bench.solvers.admm.loop.dual_update`, compiled), in one call. From
 :data:`LANE_SOLVE` samples on the samples are vector lanes (every innermost loop runs over
-samples); below, one sample at a time. Each sample's sums keep the order of
-:mod:`solvers.fast`.
+samples); below, one sample at a time.
 
 References: the Riccati recursion of the LQ problem (Rawlings, Mayne & Diehl, *Model Predictive
 Control*, 2nd ed., section 1.3.3); triangular solves (Golub & Van Loan, *Matrix Computations*,
@@ -23,6 +23,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from c3bench.solvers.admm.compiled_kernels import Structure
 from c3bench.solvers.admm.compiled_kernels import jit as _jit
 from c3bench.solvers.admm.loop import dual_update
 from c3bench.solvers.admm.projection import make_c3plus_pairs
@@ -40,46 +41,62 @@ LANE_SOLVE = 4
 (measured: about equal at 4 samples, lanes 1.2-1.5 times faster at 8, slower at 2-3)."""
 
 
-def solve_flops(nx: int, nv: int, nlam: int) -> int:
-    """Floating-point operations of the gradient, the two passes, ``eta`` and the projection
-    for one sample and step (2 per multiply-add)."""
+def solve_flops(nx: int, nv: int, nlam: int, pattern: Structure | None = None) -> int:
+    """Floating-point operations of :func:`solve_project` for one sample and step as it
+    executes them: the gradient, the two passes over the structural nonzeros ``pattern`` of
+    ``[A B_v d]`` (``None``: dense), ``eta``, the projection and the dual update (2 per
+    multiply-add; a clamp, comparison or division 1; the shared-input mean not counted)."""
     ny = nx + nv
-    mads = 2 * nlam * ny + nv * nx + nv * nv + nx * nx + nx * nv + nv * nx + nx * nx + nx * nv
-    return 2 * mads + 4 * ny
+    ns = ny + nlam
+    pattern = pattern or Structure.dense(nx, ny)
+    counts = np.diff(pattern.column_start)
+    nonzeros_x, nonzeros_v = int(counts[:nx].sum()), int(counts[nx:ny].sum())
+    gradient = nlam + 2 * ny * nlam + 4 * ny + nx
+    backward = 2 * nonzeros_v + nv * (nv - 1) + nv + nx + 2 * nonzeros_x + 2 * nv * nx
+    forward = 2 * nv * nx + nv + nv * (nv - 1) + 3 * nv + 2 * (nonzeros_x + nonzeros_v) + nx
+    eta = 2 * ny * nlam
+    projection = ns + 2 * nx + 5 * nlam + 2 * (ns - nx - 2 * nlam)
+    dual = 2 * ns
+    return gradient + backward + forward + eta + projection + dual
 
 
 @_jit
 def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.ndarray,
-                  consts: np.ndarray, K: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray,
-                  ABd: np.ndarray, index: int, p: np.ndarray, shared: bool, box: np.ndarray,
-                  zero: Any, z_steps: np.ndarray, z_terminal: np.ndarray, new_delta: np.ndarray,
-                  new_w: np.ndarray) -> bool:
-    """QP step (linear passes of factorisation ``index`` of ``K`` (m, T, nv, nx, n) etc.,
-    :func:`factorize_batch`), projection and dual update for every sample; ``False`` when the
-    QP solution is not finite. ``vectors`` = ``(x0, g_x, g_T)`` (3, nx), ``Mc`` = ``[M c]``
-    (n, nlam, ny + 1), ``consts`` = ``(-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam), sqrt(rho_eta))``.
+                  consts: np.ndarray, Y: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray,
+                  ABd: np.ndarray, index: int, column_start: np.ndarray,
+                  column_rows: np.ndarray, row_start: np.ndarray, row_columns: np.ndarray,
+                  p: np.ndarray, shared: bool, box: np.ndarray, zero: Any, z_steps: np.ndarray,
+                  z_terminal: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray) -> bool:
+    """QP step (linear passes of factorisation ``index`` of ``Y`` (m, T, nv, nx, n) etc.,
+    :func:`factorize_batch`), projection and dual update for every sample; ``False`` when
+    the QP solution is not finite. ``vectors`` = ``(x0, g_x, g_T)`` (3, nx), ``Mc`` = ``[M
+    c]`` (n, nlam, ny + 1), ``consts`` = ``(-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam),
+    sqrt(rho_eta))``; the structural nonzeros of ``[A B_v d]`` by column and by
+    row (:class:`~c3bench.solvers.admm.compiled_kernels.Structure`): every product with it
+    skips the rest.
 
     Gradient ``g_y = -2 G_y (delta - w)_y + (g_x, 0) + 2 rho_eta M^T (c - (delta - w)_eta)``,
-    scaled by ``D``; backward ``r = g_v + B_v^T e``, ``kk = -L^-T L^-1 r``, ``e <- S_k d +
-    g_x + A^T e + K^T r``; forward ``v = K x + kk``, ``x <- A x + B_v v + d``; ``eta = M y +
-    c``; then the C3+ projection of ``z + w`` (:func:`_project`) and the loop's dual update
-    ``new_w = w + z - new_delta`` (:func:`c3bench.solvers.admm.loop.dual_update`, compiled,
-    entry by entry). Every sample is a lane: the innermost loops run over samples (the last
-    axis of the factors and of the local arrays), each sample's sums in the order of
-    :mod:`solvers.fast`.
+    scaled by ``D``; backward ``r = g_v + B_v^T e``, ``t_k = L^-1 r``, ``e <- S_k d + g_x +
+    A^T e - Y^T t_k`` (``K^T r = -Y^T L^-1 r``); forward ``v = -L^-T (Y x + t_k)`` (``K x +
+    kk``), ``x <- A x + B_v v + d``; ``eta = M y + c``; then the C3+ projection of ``z + w``
+    (:func:`_project`) and the loop's dual update ``new_w = w + z - new_delta``
+    (:func:`c3bench.solvers.admm.loop.dual_update`, compiled, entry by entry). Every sample
+    is a lane: the innermost loops run over samples (the last axis of the factors and of the
+    local arrays).
     """
     n, T, ns = delta.shape
     if n < LANE_SOLVE:
-        return _solve_project_samples(vectors, delta, w, Mc, consts, K, L, Sd, D, ABd, index, p,
+        return _solve_project_samples(vectors, delta, w, Mc, consts, Y, L, Sd, D, ABd, index,
+                                      column_start, column_rows, row_start, row_columns, p,
                                       shared, box, zero, z_steps, z_terminal, new_delta, new_w)
-    nx, nv = K.shape[3], K.shape[2]
+    nx, nv = Y.shape[3], Y.shape[2]
     nlam = Mc.shape[1]
     ny = nx + nv
     dt = delta.dtype
+    Yi, Li, Sdi, Di, AB = Y[index], L[index], Sd[index], D[index], ABd[index]
     x0, gx, gT = vectors[0], vectors[1], vectors[2]
     g2 = consts[:ny]
     two_rho_eta = consts[ny]
-    Ki, Li, Sdi, Di, AB = K[index], L[index], Sd[index], D[index], ABd[index]
     Mt = np.empty((nlam, ny + 1, n), dt)  # [M c] with samples last
     dw = np.empty((T, ns, n), dt)  # delta - w
     for j in range(n):
@@ -89,10 +106,10 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
         for k in range(T):
             for a in range(ns):
                 dw[k, a, j] = delta[j, k, a] - w[j, k, a]
-    gy, kk = np.empty((T, ny, n), dt), np.empty((T, nv, n), dt)
+    gy, tt = np.empty((T, ny, n), dt), np.empty((T, nv, n), dt)
     zt = np.empty((T + 1, ns, n), dt)  # z with samples last (row T: terminal x)
     eta, e, r = np.empty((nlam, n), dt), np.empty((nx, n), dt), np.empty((nv, n), dt)
-    t, x, xn = np.empty((nv, n), dt), np.empty((nx, n), dt), np.empty((nx, n), dt)
+    v, x, xn = np.empty((nv, n), dt), np.empty((nx, n), dt), np.empty((nx, n), dt)
     for k in range(T):  # gradient
         for b in range(nlam):
             for j in range(n):
@@ -115,40 +132,29 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
         for a in range(nv):  # r = g_v + B_v^T e
             for j in range(n):
                 r[a, j] = gy[k, nx + a, j]
-        for b in range(nx):
-            for a in range(nv):
+            for q in range(column_start[nx + a], column_start[nx + a + 1]):
+                b = column_rows[q]
                 for j in range(n):
                     r[a, j] += e[b, j] * AB[b, nx + a, j]
-        Lk = Li[k]
         for a in range(nv):  # L t = r
             for j in range(n):
-                t[a, j] = r[a, j]
+                tt[k, a, j] = r[a, j]
             for b in range(a):
                 for j in range(n):
-                    t[a, j] -= Lk[a, b, j] * t[b, j]
+                    tt[k, a, j] -= Li[k, a, b, j] * tt[k, b, j]
             for j in range(n):
-                t[a, j] = t[a, j] / Lk[a, a, j]
-        for a in range(nv - 1, -1, -1):  # L^T kk = -t
-            for j in range(n):
-                kk[k, a, j] = -t[a, j]
-            for b in range(a + 1, nv):
-                for j in range(n):
-                    kk[k, a, j] -= Lk[b, a, j] * kk[k, b, j]
-            for j in range(n):
-                kk[k, a, j] = kk[k, a, j] / Lk[a, a, j]
+                tt[k, a, j] = tt[k, a, j] / Li[k, a, a, j]
         if k > 0:
-            Kk = Ki[k]
-            for a in range(nx):  # e <- S_k d + g_x + A^T e + K^T r
+            for a in range(nx):  # e <- S_k d + g_x + A^T e - Y^T t
                 for j in range(n):
                     xn[a, j] = gy[k, a, j] + Sdi[k - 1, a, j]
-            for b in range(nx):
-                for a in range(nx):
+                for q in range(column_start[a], column_start[a + 1]):
+                    b = column_rows[q]
                     for j in range(n):
                         xn[a, j] += e[b, j] * AB[b, a, j]
-            for b in range(nv):
-                for a in range(nx):
+                for b in range(nv):
                     for j in range(n):
-                        xn[a, j] += r[b, j] * Kk[b, a, j]
+                        xn[a, j] -= tt[k, b, j] * Yi[k, b, a, j]
             for a in range(nx):
                 for j in range(n):
                     e[a, j] = xn[a, j]
@@ -157,24 +163,31 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
             x[a, j] = x0[a] / Di[a, j]
             zt[0, a, j] = x0[a]
     for k in range(T):
-        Kk = Ki[k]
-        for a in range(nv):
+        for a in range(nv - 1, -1, -1):  # v = -L^-T (Y x + t)
             for j in range(n):
-                t[a, j] = kk[k, a, j]
+                r[a, j] = tt[k, a, j]
             for b in range(nx):
                 for j in range(n):
-                    t[a, j] += Kk[a, b, j] * x[b, j]
+                    r[a, j] += Yi[k, a, b, j] * x[b, j]
             for j in range(n):
-                zt[k, nx + a, j] = t[a, j] * Di[nx + a, j]
-        for a in range(nx):
+                v[a, j] = -r[a, j]
+            for b in range(a + 1, nv):
+                for j in range(n):
+                    v[a, j] -= Li[k, b, a, j] * v[b, j]
+            for j in range(n):
+                v[a, j] = v[a, j] / Li[k, a, a, j]
+                zt[k, nx + a, j] = v[a, j] * Di[nx + a, j]
+        for a in range(nx):  # x <- A x + B_v v + d
             for j in range(n):
                 xn[a, j] = AB[a, ny, j]
-            for b in range(nx):
-                for j in range(n):
-                    xn[a, j] += AB[a, b, j] * x[b, j]
-            for b in range(nv):
-                for j in range(n):
-                    xn[a, j] += AB[a, nx + b, j] * t[b, j]
+            for q in range(row_start[a], row_start[a + 1]):
+                b = row_columns[q]
+                if b < nx:
+                    for j in range(n):
+                        xn[a, j] += AB[a, b, j] * x[b, j]
+                else:
+                    for j in range(n):
+                        xn[a, j] += AB[a, b, j] * v[b - nx, j]
         for a in range(nx):
             for j in range(n):
                 x[a, j] = xn[a, j]
@@ -198,20 +211,24 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
 
 @_jit
 def _solve_project_samples(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
-                           Mc: np.ndarray, consts: np.ndarray, K: np.ndarray, L: np.ndarray,
+                           Mc: np.ndarray, consts: np.ndarray, Y: np.ndarray, L: np.ndarray,
                            Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, index: int,
-                           p: np.ndarray, shared: bool, box: np.ndarray, zero: Any,
-                           z_steps: np.ndarray, z_terminal: np.ndarray, new_delta: np.ndarray,
-                           new_w: np.ndarray) -> bool:
+                           column_start: np.ndarray, column_rows: np.ndarray,
+                           row_start: np.ndarray, row_columns: np.ndarray, p: np.ndarray,
+                           shared: bool, box: np.ndarray, zero: Any, z_steps: np.ndarray,
+                           z_terminal: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray
+                           ) -> bool:
     """:func:`solve_project` one sample at a time (faster below :data:`LANE_SOLVE` samples,
     where vectors over samples would be too short); ``False`` when the QP solution is not
     finite.
     """
     n, T = delta.shape[0], delta.shape[1]
-    work = _Work(delta.dtype, T, K.shape[3], K.shape[2], Mc.shape[1])
+    work = _Work(delta.dtype, T, Y.shape[3], Y.shape[2], Mc.shape[1])
     for j in range(n):
-        _solve_sample(j, vectors, delta, w, Mc, consts, K, L, Sd, D[index, :, j],
-                      ABd[index, :, :, j], index, zero, z_steps, z_terminal, work)
+        _solve_sample(j, vectors, delta, w, Mc, consts, Y[index, :, :, :, j],
+                      L[index, :, :, :, j], Sd[index, :, :, j], D[index, :, j],
+                      ABd[index, :, :, j], column_start, column_rows, row_start, row_columns,
+                      zero, z_steps, z_terminal, work)
     return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, Mc.shape[1], consts,
                                p, shared, box, zero)
 
@@ -241,8 +258,8 @@ def _project_and_update(z_steps: np.ndarray, z_terminal: np.ndarray, w: np.ndarr
 
 @_jit
 def _Work(dtype: Any, T: int, nx: int, nv: int, nlam: int) -> tuple[np.ndarray, ...]:
-    """Scratch arrays of :func:`_solve_sample`: ``g_y`` (T, ny), ``kk`` (T, nv), ``eta``,
-    ``e``, ``r``, ``t``, ``x``, ``x_next``."""
+    """Scratch arrays of :func:`_solve_sample`: ``g_y`` (T, ny), ``t`` (T, nv), ``eta``,
+    ``e``, ``r``, ``v``, ``x``, ``x_next``."""
     ny = nx + nv
     return (np.empty((T, ny), dtype), np.empty((T, nv), dtype), np.empty(nlam, dtype),
             np.empty(nx, dtype), np.empty(nv, dtype), np.empty(nv, dtype),
@@ -251,18 +268,21 @@ def _Work(dtype: Any, T: int, nx: int, nv: int, nlam: int) -> tuple[np.ndarray, 
 
 @_jit
 def _solve_sample(j: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
-                  Mc: np.ndarray, consts: np.ndarray, K: np.ndarray, L: np.ndarray,
-                  Sd: np.ndarray, Dj: np.ndarray, ABdj: np.ndarray, index: int, zero: Any,
-                  z_steps: np.ndarray, z_terminal: np.ndarray, work: Any) -> None:
-    """Gradient, backward and forward passes and ``eta`` of sample ``j`` (:func:`solve_project`)."""
+                  Mc: np.ndarray, consts: np.ndarray, Y: np.ndarray, L: np.ndarray,
+                  Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, column_start: np.ndarray,
+                  column_rows: np.ndarray, row_start: np.ndarray, row_columns: np.ndarray,
+                  zero: Any, z_steps: np.ndarray, z_terminal: np.ndarray, work: Any) -> None:
+    """Gradient, backward and forward passes and ``eta`` of sample ``j``, whose factors are
+    ``Y`` (T, nv, nx), ``L`` (T, nv, nv), ``Sd`` (T, nx), ``D`` (ny,) and ``ABd`` (nx, ny + 1)
+    (:func:`solve_project`)."""
     T = delta.shape[1]
-    nx, nv = K.shape[3], K.shape[2]
+    nx, nv = Y.shape[2], Y.shape[1]
     nlam = Mc.shape[1]
     ny = nx + nv
     x0, gx, gT = vectors[0], vectors[1], vectors[2]
     g2 = consts[:ny]
     two_rho_eta = consts[ny]
-    gy, kk, eta, e, r, t, x, xn = work
+    gy, tt, eta, e, r, v, x, xn = work
     for k in range(T):
         for b in range(nlam):
             eta[b] = Mc[j, b, ny] - (delta[j, k, ny + b] - w[j, k, ny + b])
@@ -273,65 +293,57 @@ def _solve_sample(j: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
             s = zero
             for b in range(nlam):
                 s += Mc[j, b, a] * eta[b]
-            gy[k, a] = (g + s * two_rho_eta) * Dj[a]
+            gy[k, a] = (g + s * two_rho_eta) * D[a]
     for a in range(nx):
-        e[a] = Sd[index, T - 1, a, j] + gT[a] * Dj[a]
+        e[a] = Sd[T - 1, a] + gT[a] * D[a]
     for k in range(T - 1, -1, -1):
         for a in range(nv):  # r = g_v + B_v^T e
-            r[a] = gy[k, nx + a]
-        for b in range(nx):
-            h = e[b]
-            for a in range(nv):
-                r[a] += h * ABdj[b, nx + a]
-        Lk = L[index, k, :, :, j]
+            s = gy[k, nx + a]
+            for q in range(column_start[nx + a], column_start[nx + a + 1]):
+                b = column_rows[q]
+                s += e[b] * ABd[b, nx + a]
+            r[a] = s
         for a in range(nv):  # L t = r
             s = r[a]
             for b in range(a):
-                s -= Lk[a, b] * t[b]
-            t[a] = s / Lk[a, a]
-        for a in range(nv - 1, -1, -1):  # L^T kk = -t
-            s = -t[a]
-            for b in range(a + 1, nv):
-                s -= Lk[b, a] * kk[k, b]
-            kk[k, a] = s / Lk[a, a]
+                s -= L[k, a, b] * tt[k, b]
+            tt[k, a] = s / L[k, a, a]
         if k > 0:
-            Kk = K[index, k, :, :, j]
-            for a in range(nx):  # e <- S_k d + g_x + A^T e + K^T r
-                xn[a] = gy[k, a] + Sd[index, k - 1, a, j]
-            for b in range(nx):
-                h = e[b]
-                for a in range(nx):
-                    xn[a] += h * ABdj[b, a]
-            for b in range(nv):
-                h = r[b]
-                for a in range(nx):
-                    xn[a] += h * Kk[b, a]
+            for a in range(nx):  # e <- S_k d + g_x + A^T e - Y^T t
+                s = gy[k, a] + Sd[k - 1, a]
+                for q in range(column_start[a], column_start[a + 1]):
+                    b = column_rows[q]
+                    s += e[b] * ABd[b, a]
+                for b in range(nv):
+                    s -= tt[k, b] * Y[k, b, a]
+                xn[a] = s
             for a in range(nx):
                 e[a] = xn[a]
     for a in range(nx):
-        x[a] = x0[a] / Dj[a]
+        x[a] = x0[a] / D[a]
         z_steps[j, 0, a] = x0[a]
     for k in range(T):
-        Kk = K[index, k, :, :, j]
-        for a in range(nv):
-            s = kk[k, a]
+        for a in range(nv - 1, -1, -1):  # v = -L^-T (Y x + t)
+            s = tt[k, a]
             for b in range(nx):
-                s += Kk[a, b] * x[b]
-            t[a] = s
-            z_steps[j, k, nx + a] = s * Dj[nx + a]
-        for a in range(nx):
-            s = ABdj[a, ny]
-            for b in range(nx):
-                s += ABdj[a, b] * x[b]
-            for b in range(nv):
-                s += ABdj[a, nx + b] * t[b]
+                s += Y[k, a, b] * x[b]
+            s = -s
+            for b in range(a + 1, nv):
+                s -= L[k, b, a] * v[b]
+            v[a] = s / L[k, a, a]
+            z_steps[j, k, nx + a] = v[a] * D[nx + a]
+        for a in range(nx):  # x <- A x + B_v v + d
+            s = ABd[a, ny]
+            for q in range(row_start[a], row_start[a + 1]):
+                b = row_columns[q]
+                s += ABd[a, b] * (x[b] if b < nx else v[b - nx])
             xn[a] = s
         for a in range(nx):
             x[a] = xn[a]
             if k + 1 < T:
-                z_steps[j, k + 1, a] = xn[a] * Dj[a]
+                z_steps[j, k + 1, a] = xn[a] * D[a]
             else:
-                z_terminal[j, a] = xn[a] * Dj[a]
+                z_terminal[j, a] = xn[a] * D[a]
     for k in range(T):
         for b in range(nlam):
             s = Mc[j, b, ny]

@@ -79,6 +79,12 @@ class CompiledC3Plus:
         """JIT time spent in this process so far (excluded from step timings)."""
         return float(self.kernel.compile_seconds)
 
+    @property
+    def executed_flops(self) -> float:
+        """Floating-point operations the kernel executed in the last control step
+        (:attr:`CompiledC3PlusKernel.flops`)."""
+        return float(self.kernel.flops)
+
     def bind(self, lcs: LCSBatch) -> None:
         """Use ``lcs`` for the next control step."""
         self._lcs = lcs
