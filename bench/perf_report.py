@@ -115,7 +115,9 @@ def run_lines(frame: pd.DataFrame) -> list[str]:
             f"{np.nanmin(loads):.2f}-{np.nanmax(loads):.2f}. Dense matmul rate of this run "
             f"(256 x 256, one thread): {', '.join(rates)} GFLOP/s. `step` = LCS build + "
             "weighting + ADMM; `admm` = the controller's call alone (`qp` + `proj` + its "
-            "overhead); GFLOP/s = the flop model's ADMM flops (bench/perf_flops.py) / `admm`; "
+            "overhead); GFLOP/s = the flops the backend executed in its ADMM / `admm` (the "
+            "compiled kernel counts its own, which skip structural zeros; the flop model of "
+            "bench/perf_flops.py for the numpy and JAX paths); "
             "`t / riccati`, `t / osqp` = median time over that of c3plus-riccati float64 and "
             "c3-osqp at the same samples in this run (below 1 is faster). The reference "
             f"study's step: {REFERENCE_STEP_MS:g} ms (16 samples).", ""]
