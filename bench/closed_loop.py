@@ -431,19 +431,16 @@ def _simulate_with_progress(spec: ControllerSpec, policy: Policy, cfg: Config,
                             duration: float, steps: int, plant_scene: Scene, progress: bool,
                             x0: np.ndarray | None) -> tuple[Trajectory, list[StepRecord]]:
     """:func:`simulate` with one BLAS thread and, when ``progress``, a progress bar."""
-    bar = None
-    callback = None
-    if progress:
-        bar = progress_bar(True, steps, spec.label(), "step")
+    bar = progress_bar(progress, steps, spec.label(), "step")
 
-        def callback(done: int, total: int) -> None:
-            bar.update(1)
+    def callback(done: int, total: int) -> None:
+        bar.update(1)
 
     try:
         with single_thread_blas():  # small dense solves: one BLAS thread is fastest
             trajectory, records = simulate(policy, cfg, duration, x0=x0,
-                                           plant_scene=plant_scene, progress=callback)
+                                           plant_scene=plant_scene,
+                                           progress=callback if progress else None)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     return trajectory, records

@@ -57,14 +57,6 @@ from c3bench.solvers.riccati import (
     solve_lq,
     swap_last,
 )
-from c3bench.solvers.riccati_qp import (
-    StructuredQP,
-    equality_duals,
-    reduce_stage,
-    solve_c3plus_qp,
-    solve_structured,
-    structure_of,
-)
 
 __all__ = [
     "FactorCache",
@@ -74,16 +66,10 @@ __all__ = [
     "FastTimings",
     "RiccatiFactor",
     "RiccatiOptions",
-    "StructuredQP",
-    "equality_duals",
     "factorize",
     "fast_options",
     "project_c3plus_batch",
-    "reduce_stage",
-    "solve_c3plus_qp",
     "solve_lq",
-    "solve_structured",
-    "structure_of",
 ]
 
 

@@ -48,9 +48,10 @@ inverse). :func:`solve_lq` does the linear passes for any ``(x0, g_y, q_T)`` in 
 products per time step and direction. :class:`FactorCache` keeps recent factorisations keyed
 by the ``rho`` values, the LCS batch identity (``LCSBatch.uid``) and the options, so a
 repeated ``rho`` on an unchanged LCS costs no factorisation. With the geometric schedule the
-rho of all iterations is known before the first one, so :class:`FastC3Plus` factorises the
-whole schedule in one batched call over (iterations x samples) (``prefactorize``): the same
-arithmetic with a tenth of the numpy calls.
+rho of all iterations is known before the first one, so the controller
+(:meth:`c3bench.solvers.fast.FastC3Plus.factors`, with ``prefactorize`` on; not this module)
+factorises the whole schedule in one :func:`factorize` call over (iterations x samples): the
+same arithmetic with a tenth of the numpy calls.
 
 **Conditioning safeguards** (the reference study's equilibrated method, section 3.2, in spirit):
 

@@ -28,10 +28,10 @@ from c3bench.solvers.fast import (
     FastC3PlusController,
     RiccatiOptions,
     project_c3plus_batch,
-    solve_c3plus_qp,
 )
 from c3bench.solvers.projection import c3plus_projection
 from c3bench.solvers.residuals import primal_residual, residuals
+from c3bench.solvers.riccati_qp import solve_c3plus_qp
 
 MID = PROFILE_TOLERANCE[Profile.MID_ACCURACY]
 SIDES = (0.27, 0.29, 0.30, 0.33)

@@ -65,7 +65,8 @@ class CompiledFactors:
 
     ``Y`` (m, T, nv, nx, n) = ``L^-1 Q_vx``, ``L`` (m, T, nv, nv, n) lower Cholesky factors of
     ``Q_vv``, ``Sd`` (m, T, nx, n), ``D`` (m, ny, n), ``ABd`` (m, nx, ny + 1, n) the scaled
-    ``[A B_v d]`` (samples last: the linear passes work the samples as vector lanes);
+    ``[A B_v d]`` (samples last: from :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE`
+    samples on, the linear passes work the samples as vector lanes);
     ``failed`` (m, n): -1 or the time step whose Cholesky factorisation failed.
     """
 
@@ -108,7 +109,7 @@ def rho_key(rho: Mapping[str, float]) -> tuple[float, ...]:
 
 class _Entry(NamedTuple):
     """One factorised rho: where its factors are, its constants and, when its factorisation
-    failed, why (raised by :meth:`CompiledC3PlusKernel.iterate`)."""
+    failed, why (raised by :meth:`CompiledC3PlusKernel.step` and ``iterate``)."""
 
     factors: CompiledFactors
     slot: int
@@ -117,7 +118,7 @@ class _Entry(NamedTuple):
 
 
 class CompiledC3PlusKernel:
-    """C3+ QP step + projection compiled with numba (module docstring).
+    """C3+ QP step, projection and dual update compiled with numba (module docstring).
 
     Parameters
     ----------
@@ -247,6 +248,7 @@ class CompiledC3PlusKernel:
         """One whole ADMM iteration in one compiled call: :meth:`iterate`'s three arrays and
         the dual update ``new_w = w + z_steps - new_delta`` (the loop's
         :func:`c3bench.solvers.admm.loop.dual_update`, compiled); new arrays every call."""
+        pattern = self.structure  # raises before start()
         key = rho_key(rho)
         entry = self._entries.get(key)
         if entry is None:
@@ -265,9 +267,9 @@ class CompiledC3PlusKernel:
                              f"{w.shape}")
         out = np.empty((3, *shape), dtype)  # z_steps, new_delta, new_w
         z_terminal = np.empty((shape[0], self.nx), dtype)
-        f, pattern = entry.factors, self.structure
-        args = (self._vectors, delta, w, self._arrays["Mc"], entry.consts, f.Y, f.L, f.Sd, f.D,
-                f.ABd, entry.slot, pattern.column_start, pattern.column_rows,
+        f = entry.factors
+        args = (self._vectors, delta, w, self._arrays["Mc"], self._arrays["Mt"], entry.consts,
+                f.Y, f.L, f.Sd, f.D, f.ABd, entry.slot, pattern.column_start, pattern.column_rows,
                 pattern.row_start, pattern.row_columns, self._p, self._shared, self._box,
                 self._zero, out[0], z_terminal, out[1], out[2])
         if self._solve_compiled:
@@ -291,6 +293,7 @@ class CompiledC3PlusKernel:
             dt = self.dtype
             self._arrays = {"A": np.empty((n, nx, nx), dt), "Bv": np.empty((n, nx, nv), dt),
                             "d": np.empty((n, nx), dt), "Mc": np.empty((n, nlam, ny + 1), dt),
+                            "Mt": np.empty((nlam, ny + 1, n), dt),
                             "MtM": np.empty((n, ny, ny), dt)}
             self._shape = shape
             self._step_shape = (n, self.mpc.horizon, ny + nlam)
@@ -307,6 +310,7 @@ class CompiledC3PlusKernel:
         Mc[:, :, nx:nx + nlam] = lcs.F
         Mc[:, :, nx + nlam:ny] = lcs.H
         Mc[:, :, ny] = lcs.c
+        a["Mt"][...] = np.moveaxis(Mc, 0, -1)  # samples last, for the lane passes
         M = Mc[:, :, :ny]
         np.matmul(np.swapaxes(M, 1, 2), M, out=a["MtM"])
         mask = np.zeros((nx, ny + 1), dtype=bool)
@@ -325,12 +329,17 @@ class CompiledC3PlusKernel:
         n, nx, nlam, nu = self._shape
         return CompiledFactors.empty(m, n, self.mpc.horizon, nx, nlam + nu, self.dtype)
 
-    @staticmethod
-    def _failure(rho: Mapping[str, float], factors: CompiledFactors, index: int) -> str:
-        failed = factors.failed[index]
-        j = int(np.argmax(failed >= 0))
-        return (f"Q_vv not positive definite (Cholesky) for sample {j} at step "
-                f"{int(failed[j])}, rho={dict(rho)}")
+    def _entry(self, rho: Mapping[str, float], key: tuple[float, ...],
+               factors: CompiledFactors, slot: int) -> _Entry:
+        """The entry of ``rho``, factorised in ``slot`` of ``factors``: its constants and, when
+        a sample's factorisation failed, why."""
+        failed = factors.failed[slot]
+        failure = None
+        if failed.max() >= 0:
+            j = int(np.argmax(failed >= 0))
+            failure = (f"Q_vv not positive definite (Cholesky) for sample {j} at step "
+                       f"{int(failed[j])}, rho={dict(rho)}")
+        return _Entry(factors, slot, self._constants(rho, key)[1], failure)
 
     def _planned_entry(self, key: tuple[float, ...], index: int) -> _Entry:
         """Factorise the plan's group holding place ``index`` into the group buffer (one
@@ -340,24 +349,18 @@ class CompiledC3PlusKernel:
         first = index // size * size
         rhos = self._plan[first:first + size]
         keys = self._factorize(rhos, self._planned)
-        failed = self._planned.failed.max(axis=1).tolist()
         self._entries = {}
         for i in range(len(keys) - 1, -1, -1):
-            consts = self._constants(rhos[i], keys[i])[1]
-            failure = None if failed[i] < 0 else self._failure(rhos[i], self._planned, i)
-            self._entries[keys[i]] = _Entry(self._planned, i, consts, failure)
+            self._entries[keys[i]] = self._entry(rhos[i], keys[i], self._planned, i)
         return self._entries[key]
 
     def _off_plan_entry(self, key: tuple[float, ...], rho: Mapping[str, float]) -> _Entry:
         """A rho outside the plan: factorised now, or from the small cache."""
-        if not self._shape:
-            raise InputError("call start() before iterate()")
         entry = self._off_plan.get(key)
         if entry is None:
             factors = self._allocate(1)
             self._factorize([rho], factors)
-            failure = None if factors.failed.max() < 0 else self._failure(rho, factors, 0)
-            entry = _Entry(factors, 0, self._constants(rho, key)[1], failure)
+            entry = self._entry(rho, key, factors, 0)
             self._off_plan[key] = entry
             while len(self._off_plan) > OFF_PLAN_CACHE:
                 self._off_plan.popitem(last=False)

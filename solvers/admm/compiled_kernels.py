@@ -185,6 +185,7 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     li, lj = np.empty(LB, np.int64), np.empty(LB, np.int64)
     for l0 in range(0, lanes, LB):
         nl = min(LB, lanes - l0)
+        runs = _block_runs(l0, nl, n)
         for l in range(nl):
             li[l], lj[l] = (l0 + l) // n, (l0 + l) % n
         _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
@@ -193,22 +194,35 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
         for k in range(T - 1, -1, -1):
             _riccati_lanes(k, nl, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, sv, Li, fb,
                            column_start, column_rows, Yb, Lb, Sdb)
-            _store_step(k, l0, nl, n, Yb, Lb, Sdb, Y, L, Sd)
-        _store_block(l0, nl, n, fb, Db, ABb, failed, D, ABd)
+            _store_step(k, runs, Yb, Lb, Sdb, Y, L, Sd)
+        _store_block(runs, fb, Db, ABb, failed, D, ABd)
 
 
 @jit
-def _store_step(k: int, l0: int, nl: int, n: int, Yb: np.ndarray, Lb: np.ndarray,
-                Sdb: np.ndarray, Y: np.ndarray, L: np.ndarray, Sd: np.ndarray) -> None:
-    """Copy step ``k`` of the block's lanes ``l0 .. l0 + nl`` (``Y``, the lower triangle of
-    ``L``, ``S_{k+1} d``) out, one run of consecutive samples of one rho at a time (the
-    block's work arrays stay compact: the vectoriser handles them much better than the
-    outputs at an offset)."""
-    nv, nx = Yb.shape[0], Yb.shape[1]
-    l = 0
+def _block_runs(l0: int, nl: int, n: int) -> np.ndarray:
+    """The runs of consecutive samples of one rho in the block of lanes ``l0 .. l0 + nl``
+    (lane ``i n + j``): rows ``(i, j0, l, run)``, lanes ``l .. l + run`` of the block are
+    samples ``j0 .. j0 + run`` of rho ``i``."""
+    runs = np.empty((nl // n + 2, 4), np.int64)
+    count, l = 0, 0
     while l < nl:
         i, j0 = (l0 + l) // n, (l0 + l) % n
         run = min(n - j0, nl - l)
+        runs[count, 0], runs[count, 1], runs[count, 2], runs[count, 3] = i, j0, l, run
+        count += 1
+        l += run
+    return runs[:count]
+
+
+@jit
+def _store_step(k: int, runs: np.ndarray, Yb: np.ndarray, Lb: np.ndarray, Sdb: np.ndarray,
+                Y: np.ndarray, L: np.ndarray, Sd: np.ndarray) -> None:
+    """Copy step ``k`` of the block (``Y``, the lower triangle of ``L``, ``S_{k+1} d``) out,
+    one run of :func:`_block_runs` at a time (the block's work arrays stay compact: the
+    vectoriser handles them much better than the outputs at an offset)."""
+    nv, nx = Yb.shape[0], Yb.shape[1]
+    for r in range(runs.shape[0]):
+        i, j0, l, run = runs[r, 0], runs[r, 1], runs[r, 2], runs[r, 3]
         for a in range(nv):
             for b in range(nx):
                 for q in range(run):
@@ -219,19 +233,16 @@ def _store_step(k: int, l0: int, nl: int, n: int, Yb: np.ndarray, Lb: np.ndarray
         for a in range(nx):
             for q in range(run):
                 Sd[i, k, a, j0 + q] = Sdb[a, l + q]
-        l += run
 
 
 @jit
-def _store_block(l0: int, nl: int, n: int, fb: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
+def _store_block(runs: np.ndarray, fb: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
                  failed: np.ndarray, D: np.ndarray, ABd: np.ndarray) -> None:
     """Copy the block's failures, scaling and scaled ``[A B_v d]`` out (as
     :func:`_store_step`)."""
     ny, nx = Db.shape[0], ABb.shape[0]
-    l = 0
-    while l < nl:
-        i, j0 = (l0 + l) // n, (l0 + l) % n
-        run = min(n - j0, nl - l)
+    for r in range(runs.shape[0]):
+        i, j0, l, run = runs[r, 0], runs[r, 1], runs[r, 2], runs[r, 3]
         for q in range(run):
             failed[i, j0 + q] = fb[l + q]
         for a in range(ny):
@@ -241,7 +252,6 @@ def _store_block(l0: int, nl: int, n: int, fb: np.ndarray, Db: np.ndarray, ABb: 
             for b in range(ny + 1):
                 for q in range(run):
                     ABd[i, a, b, j0 + q] = ABb[a, b, l + q]
-        l += run
 
 
 @jit

@@ -62,15 +62,17 @@ def solve_flops(nx: int, nv: int, nlam: int, pattern: Structure | None = None) -
 
 @_jit
 def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.ndarray,
-                  consts: np.ndarray, Y: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray,
-                  ABd: np.ndarray, index: int, column_start: np.ndarray,
+                  Mt: np.ndarray, consts: np.ndarray, Y: np.ndarray, L: np.ndarray,
+                  Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, index: int,
+                  column_start: np.ndarray,
                   column_rows: np.ndarray, row_start: np.ndarray, row_columns: np.ndarray,
                   p: np.ndarray, shared: bool, box: np.ndarray, zero: Any, z_steps: np.ndarray,
                   z_terminal: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray) -> bool:
     """QP step (linear passes of factorisation ``index`` of ``Y`` (m, T, nv, nx, n) etc.,
-    :func:`factorize_batch`), projection and dual update for every sample; ``False`` when
-    the QP solution is not finite. ``vectors`` = ``(x0, g_x, g_T)`` (3, nx), ``Mc`` = ``[M
-    c]`` (n, nlam, ny + 1), ``consts`` = ``(-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam),
+    :func:`c3bench.solvers.admm.compiled_kernels.factorize_batch`), projection and dual update
+    for every sample; ``False`` when the QP solution is not finite. ``vectors`` = ``(x0, g_x,
+    g_T)`` (3, nx), ``Mc`` = ``[M c]`` (n, nlam, ny + 1), ``Mt`` the same with the samples
+    last (nlam, ny + 1, n), ``consts`` = ``(-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam),
     sqrt(rho_eta))``; the structural nonzeros of ``[A B_v d]`` by column and by
     row (:class:`~c3bench.solvers.admm.compiled_kernels.Structure`): every product with it
     skips the rest.
@@ -80,9 +82,10 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
     A^T e - Y^T t_k`` (``K^T r = -Y^T L^-1 r``); forward ``v = -L^-T (Y x + t_k)`` (``K x +
     kk``), ``x <- A x + B_v v + d``; ``eta = M y + c``; then the C3+ projection of ``z + w``
     (:func:`_project`) and the loop's dual update ``new_w = w + z - new_delta``
-    (:func:`c3bench.solvers.admm.loop.dual_update`, compiled, entry by entry). Every sample
-    is a lane: the innermost loops run over samples (the last axis of the factors and of the
-    local arrays).
+    (:func:`c3bench.solvers.admm.loop.dual_update`, compiled, entry by entry). From
+    :data:`LANE_SOLVE` samples on every sample is a lane (the innermost loops run over the
+    samples, the last axis of the factors and of the local arrays); below, one sample at a
+    time (:func:`_solve_project_samples`).
     """
     n, T, ns = delta.shape
     if n < LANE_SOLVE:
@@ -97,12 +100,8 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
     x0, gx, gT = vectors[0], vectors[1], vectors[2]
     g2 = consts[:ny]
     two_rho_eta = consts[ny]
-    Mt = np.empty((nlam, ny + 1, n), dt)  # [M c] with samples last
     dw = np.empty((T, ns, n), dt)  # delta - w
     for j in range(n):
-        for b in range(nlam):
-            for a in range(ny + 1):
-                Mt[b, a, j] = Mc[j, b, a]
         for k in range(T):
             for a in range(ns):
                 dw[k, a, j] = delta[j, k, a] - w[j, k, a]
