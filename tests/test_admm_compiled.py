@@ -21,7 +21,8 @@ from c3bench.problems.scene import build_mpc, build_scene
 from c3bench.problems.suites import sample_states, scripted_push
 from c3bench.solvers.admm import compiled_kernels as kernels
 from c3bench.solvers.admm import compiled_passes as passes
-from c3bench.solvers.admm.compiled import CompiledC3PlusKernel, KernelFailure, warm_up
+from c3bench.solvers.admm.compiled import CompiledC3PlusKernel, KernelFailure
+from c3bench.solvers.admm.compiled_solver import warm_up
 from c3bench.solvers.fast import FastC3Plus, RiccatiOptions, project_c3plus_batch
 
 TOLERANCE = {Precision.FLOAT64: 1e-9, Precision.FLOAT32: 2e-3}

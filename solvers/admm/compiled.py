@@ -23,7 +23,8 @@ with numba (Lam, Pitrou & Seibert, "Numba: a LLVM-based Python JIT compiler", LL
   cache keyed by the rho values.
 
 JIT compilation happens once per process (and is cached on disk); :func:`warm_up` compiles
-every signature (float64 and float32) on a tiny problem. ``compile_seconds`` is the JIT
+every signature (float64 and float32) on a tiny problem
+(:func:`c3bench.solvers.admm.compiled_solver.warm_up`). ``compile_seconds`` is the JIT
 time spent in this process so far (the first call of each kernel and precision), so that
 step timings can exclude it. Measured: about 14 s to compile everything from scratch (load
 average 5 on 2 cores), 0.2 s to load it from numba's disk cache.
@@ -47,64 +48,23 @@ import numpy as np
 from c3bench.problems.errors import InputError
 from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC
-from c3bench.problems.names import BLOCKS, Block, Precision
+from c3bench.problems.names import Block, Precision
 from c3bench.solvers.admm import compiled_kernels as kernels
 from c3bench.solvers.admm import compiled_passes as passes
-from c3bench.solvers.admm.kernel import KernelFailure
+from c3bench.solvers.admm import compiled_plan
+from c3bench.solvers.admm.compiled_factors import (
+    CompiledFactors,
+    factor_failure,
+    plan_group,
+    rho_key,
+)
+from c3bench.solvers.admm.kernel import KernelFailure, PlanRun
 from c3bench.solvers.fast import RiccatiOptions
 
-__all__ = ["CompiledC3PlusKernel", "CompiledFactors", "KernelFailure", "rho_key", "warm_up"]
+__all__ = ["CompiledC3PlusKernel", "CompiledFactors", "KernelFailure", "rho_key"]
 
 OFF_PLAN_CACHE = 4
 """How many off-plan factorisations :class:`CompiledC3PlusKernel` keeps (by rho values)."""
-
-
-@dataclass
-class CompiledFactors:
-    """Factorisations of ``m`` rho values for ``n`` samples (:func:`kernels.factorize_batch`).
-
-    ``Y`` (m, T, nv, nx, n) = ``L^-1 Q_vx``, ``L`` (m, T, nv, nv, n) lower Cholesky factors of
-    ``Q_vv``, ``Sd`` (m, T, nx, n), ``D`` (m, ny, n), ``ABd`` (m, nx, ny + 1, n) the scaled
-    ``[A B_v d]`` (samples last: from :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE`
-    samples on, the linear passes work the samples as vector lanes);
-    ``failed`` (m, n): -1 or the time step whose Cholesky factorisation failed.
-    """
-
-    Y: np.ndarray
-    L: np.ndarray
-    Sd: np.ndarray
-    D: np.ndarray
-    ABd: np.ndarray
-    failed: np.ndarray
-
-    @classmethod
-    def empty(cls, m: int, n: int, T: int, nx: int, nv: int, dtype: np.dtype[Any]
-              ) -> CompiledFactors:
-        return cls(Y=np.empty((m, T, nv, nx, n), dtype), L=np.zeros((m, T, nv, nv, n), dtype),
-                   Sd=np.empty((m, T, nx, n), dtype), D=np.empty((m, nx + nv, n), dtype),
-                   ABd=np.empty((m, nx, nx + nv + 1, n), dtype),
-                   failed=np.full((m, n), -1, np.int64))
-
-    @property
-    def shape(self) -> tuple[int, ...]:
-        """``(m, n, T)``."""
-        return (self.Y.shape[0], self.Y.shape[4], self.Y.shape[1])
-
-
-def plan_group(samples: int, planned: int) -> int:
-    """How many planned rho values are factorised together: enough for a full block of
-    :data:`~c3bench.solvers.admm.compiled_kernels.LANE_BLOCK` lanes (rho x sample pairs),
-    no more, so that one group's factors stay in the core's cache until the iterations
-    that use them (measured at 16 samples: factorising 2 rho values before their two
-    iterations is 10 % faster than factorising all 10 up front; at 64 samples one at a
-    time is 17 % faster; at 1 sample all 10 together is 2-3 times faster than fewer)."""
-    return min(planned, max(1, -(-kernels.LANE_BLOCK // samples)))
-
-
-def rho_key(rho: Mapping[str, float]) -> tuple[float, ...]:
-    """The four rho values in :data:`BLOCKS` order (plan and cache key)."""
-    return (float(rho[Block.X]), float(rho[Block.LAM]), float(rho[Block.U]),
-            float(rho[Block.ETA]))
 
 
 class _Entry(NamedTuple):
@@ -174,7 +134,10 @@ class CompiledC3PlusKernel:
         """Seconds spent in factorisations so far (compile time included)."""
         self._off_plan: OrderedDict[tuple[float, ...], _Entry] = OrderedDict()
         self._rho_constants: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
-        self._stacked: dict[tuple[tuple[float, ...], ...], tuple[np.ndarray, np.ndarray]] = {}
+        self._stacked: dict[tuple[tuple[float, ...], ...],
+                            tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._sets: tuple[np.ndarray, np.ndarray] | None = None
+        """The two iterate sets of :meth:`run_plan` (``iterates``, ``terminals``)."""
         self._p = np.ones(1, self.dtype)
         self._structure_mask: np.ndarray | None = None
         self._structure: kernels.Structure | None = None
@@ -258,13 +221,7 @@ class CompiledC3PlusKernel:
         if entry.failure is not None:
             raise KernelFailure("QP factorisation failed", entry.failure)
         dtype, shape = self.dtype, self._step_shape
-        if delta.dtype != dtype or not delta.flags.c_contiguous:
-            delta = np.ascontiguousarray(delta, dtype=dtype)
-        if w.dtype != dtype or not w.flags.c_contiguous:
-            w = np.ascontiguousarray(w, dtype=dtype)
-        if delta.shape != shape or w.shape != shape:
-            raise InputError(f"delta and w must have shape {shape}, got {delta.shape} and "
-                             f"{w.shape}")
+        delta, w = self._checked(delta), self._checked(w)
         out = np.empty((3, *shape), dtype)  # z_steps, new_delta, new_w
         z_terminal = np.empty((shape[0], self.nx), dtype)
         f = entry.factors
@@ -282,7 +239,65 @@ class CompiledC3PlusKernel:
             raise KernelFailure("non-finite QP solution", f"rho={dict(rho)}", True)
         return out[0], z_terminal, out[1], out[2]
 
+    def run_plan(self, plan: Sequence[Mapping[str, float]], ratios: np.ndarray,
+                 delta: np.ndarray, w: np.ndarray) -> PlanRun:
+        """Every iteration of the plan given to :meth:`start` in ONE compiled call
+        (:func:`compiled_plan.run_plan`: the group factorisations, :meth:`step`'s iteration
+        with ``plan[i]``, then the loop's rescaling by ``ratios[i]``); the iterates are new
+        arrays. A failed iteration ends the run with the last completed one's iterates and
+        the :class:`KernelFailure` :meth:`step` would raise."""
+        pattern = self.structure  # raises before start()
+        if self._planned is None or len(plan) != len(self._plan) or \
+                any(rho_key(a) != rho_key(b) for a, b in zip(plan, self._plan, strict=True)):
+            raise InputError("run_plan needs the plan given to start()")
+        delta, w = self._checked(delta), self._checked(w)
+        _, (bases, two_rho_eta, consts) = self._stack(plan)
+        iterates, terminals = self._iterate_sets()
+        iterates[0, 0], iterates[0, 1] = delta, w
+        f, a = self._planned, self._arrays
+        self._entries = {}  # the group buffer is overwritten
+        completed, current, code = self._timed(
+            compiled_plan.run_plan, a["A"], a["Bv"], a["d"], a["MtM"], bases, two_rho_eta,
+            self._PT, self._ridge, bool(self.riccati.jacobi), self._zero, self._one,
+            pattern.column_start, pattern.column_rows, pattern.row_start, pattern.row_columns,
+            f.Y, f.L, f.Sd, f.D, f.ABd, f.failed, self._vectors, a["Mc"], a["Mt"], consts,
+            self._p, self._shared, self._box, ratios, iterates, terminals)
+        reached = min(completed + (code != 0), len(plan))
+        group = f.shape[0]
+        self.flops += min(-(-reached // group) * group, len(plan)) * len(self._p) * \
+            self._lane_flops + (completed + (code == compiled_plan.NON_FINITE)) * \
+            len(self._p) * self._sample_flops
+        failure = None
+        if code == compiled_plan.FACTORISATION_FAILED:
+            failure = KernelFailure("QP factorisation failed",
+                                    factor_failure(f, completed % group, plan[completed]) or "")
+        elif code == compiled_plan.NON_FINITE:
+            failure = KernelFailure("non-finite QP solution", f"rho={dict(plan[completed])}",
+                                    True)
+        done = completed > 0
+        return PlanRun(completed, iterates[current, 0].copy(), iterates[current, 1].copy(),
+                       iterates[current, 2].copy() if done else None,
+                       terminals[current].copy() if done else None, failure)
+
     # -- internals -----------------------------------------------------------------------------
+    def _checked(self, array: np.ndarray) -> np.ndarray:
+        """``delta`` or ``w`` in the working precision, C-contiguous, of the step's shape."""
+        if array.dtype != self.dtype or not array.flags.c_contiguous:
+            array = np.ascontiguousarray(array, dtype=self.dtype)
+        if array.shape != self._step_shape:
+            raise InputError(f"delta and w must have shape {self._step_shape}, got "
+                             f"{array.shape}")
+        return array
+
+    def _iterate_sets(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`run_plan`'s two sets of ``(delta, w, z_steps)`` and ``z_terminal``,
+        preallocated for the current shapes."""
+        shape = self._step_shape
+        if self._sets is None or self._sets[0].shape[2:] != shape:
+            self._sets = (np.empty((2, 3, *shape), self.dtype),
+                          np.empty((2, shape[0], self.nx), self.dtype))
+        return self._sets
+
     def _convert(self, lcs: LCSBatch) -> None:
         """LCS data in the working precision, into buffers reused when the shapes repeat."""
         n, nx, nlam, nu = lcs.n_samples, self.nx, lcs.nlam, self.nu
@@ -333,13 +348,8 @@ class CompiledC3PlusKernel:
                factors: CompiledFactors, slot: int) -> _Entry:
         """The entry of ``rho``, factorised in ``slot`` of ``factors``: its constants and, when
         a sample's factorisation failed, why."""
-        failed = factors.failed[slot]
-        failure = None
-        if failed.max() >= 0:
-            j = int(np.argmax(failed >= 0))
-            failure = (f"Q_vv not positive definite (Cholesky) for sample {j} at step "
-                       f"{int(failed[j])}, rho={dict(rho)}")
-        return _Entry(factors, slot, self._constants(rho, key)[1], failure)
+        return _Entry(factors, slot, self._constants(rho, key)[1],
+                      factor_failure(factors, slot, rho))
 
     def _planned_entry(self, key: tuple[float, ...], index: int) -> _Entry:
         """Factorise the plan's group holding place ``index`` into the group buffer (one
@@ -382,16 +392,7 @@ class CompiledC3PlusKernel:
                    ) -> list[tuple[float, ...]]:
         """Factorise ``rhos`` for every sample into ``out`` (one compiled call); returns the
         rho keys."""
-        keys = [rho_key(rho) for rho in rhos]
-        key = tuple(keys)
-        stacked = self._stacked.get(key)
-        if stacked is None:
-            bases = [self._constants(rho, k)[0] for rho, k in zip(rhos, keys, strict=True)]
-            stacked = (np.stack(bases).astype(self.dtype),
-                       np.array([2 * rho[Block.ETA] for rho in rhos], dtype=self.dtype))
-            if len(self._stacked) >= 8:
-                self._stacked.clear()
-            self._stacked[key] = stacked
+        keys, stacked = self._stack(rhos)
         a = self._arrays
         started = time.perf_counter()
         self._timed(kernels.factorize_batch, a["A"], a["Bv"], a["d"], a["MtM"], stacked[0],
@@ -401,6 +402,23 @@ class CompiledC3PlusKernel:
         self.factor_seconds += time.perf_counter() - started
         self.flops += len(rhos) * a["A"].shape[0] * self._lane_flops
         return keys
+
+    def _stack(self, rhos: Sequence[Mapping[str, float]]
+               ) -> tuple[list[tuple[float, ...]], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The rho keys and, stacked over ``rhos`` in the working precision (memoised),
+        ``(bases (m, ny, ny), 2 rho_eta (m,), consts (m, ny + 3))`` (:meth:`_constants`)."""
+        keys = [rho_key(rho) for rho in rhos]
+        key = tuple(keys)
+        stacked = self._stacked.get(key)
+        if stacked is None:
+            pairs = [self._constants(rho, k) for rho, k in zip(rhos, keys, strict=True)]
+            stacked = (np.stack([base for base, _ in pairs]).astype(self.dtype),
+                       np.array([2 * rho[Block.ETA] for rho in rhos], dtype=self.dtype),
+                       np.stack([consts for _, consts in pairs]))
+            if len(self._stacked) >= 8:
+                self._stacked.clear()
+            self._stacked[key] = stacked
+        return keys, stacked
 
     def _constants(self, rho: Mapping[str, float], key: tuple[float, ...]
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -460,24 +478,3 @@ class _JitRecord:
 
 
 _JIT = _JitRecord()
-
-
-def warm_up() -> float:
-    """Compile (or load from the on-disk cache) every kernel signature, float64 and float32,
-    on a tiny random problem; returns the seconds spent."""
-    started = time.perf_counter()
-    rng = np.random.default_rng(0)
-    nx, nlam, nu, T = 2, 1, 1, 2
-    mpc = MPC(Q=np.eye(nx), R=np.eye(nu), Q_f=np.eye(nx), x_target=np.zeros(nx), horizon=T,
-              dt=0.1, force_limit=1.0)
-    lcs = LCSBatch(A=rng.normal(size=(1, nx, nx)), B=rng.normal(size=(1, nx, nu)),
-                   D=rng.normal(size=(1, nx, nlam)), d=np.zeros((1, nx)),
-                   E=rng.normal(size=(1, nlam, nx)), F=np.eye(nlam)[None],
-                   H=rng.normal(size=(1, nlam, nu)), c=np.zeros((1, nlam)), dt=0.1)
-    rho: dict[str, float] = {block: 1.0 for block in BLOCKS}
-    for precision in Precision:
-        kernel = CompiledC3PlusKernel(mpc, precision)
-        kernel.start(lcs, np.zeros(nx), np.ones(1), True, [rho])
-        zeros = np.zeros((1, T, nx + 2 * nlam + nu))
-        kernel.iterate(rho, zeros, zeros)
-    return time.perf_counter() - started

@@ -54,6 +54,21 @@ class StepInputs:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass
+class PlanRun:
+    """What a kernel's ``run_plan`` returns (a whole planned schedule in one call,
+    :func:`c3bench.solvers.admm.loop.run_admm`): the iterations completed, the iterates after
+    the last of them (``w`` rescaled for the next when there is one; ``z_steps`` ``None`` when
+    none completed) and, when iteration ``completed`` failed, why."""
+
+    completed: int
+    delta: Any
+    w: Any
+    z_steps: Any
+    z_terminal: Any
+    failure: KernelFailure | None = None
+
+
 class Kernel(Protocol):
     """The per-iteration arithmetic the loop calls (module docstring)."""
 

@@ -35,14 +35,15 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from c3bench.problems.families import weight_vector
 from c3bench.problems.mpc import HorizonLayout
-from c3bench.solvers.admm.kernel import Kernel, KernelFailure, StepInputs
+from c3bench.solvers.admm.kernel import Kernel, KernelFailure, PlanRun, StepInputs
 from c3bench.solvers.admm.options import WEIGHT_FLOOR, C3Options, Output, Stopping
 from c3bench.solvers.admm.schedules import Schedule, schedule_for
 from c3bench.solvers.admm.solution import C3Iterate, C3Solution, C3Trace, FastTimings
@@ -134,30 +135,54 @@ def shift_warm_start(delta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 _RATIOS: dict[tuple[Any, ...], np.ndarray] = {}
-"""Memoised ratio vectors of :func:`rescale_dual`."""
+"""Memoised ratio vectors of :func:`dual_ratio`."""
 
 
-def rescale_dual(w: Any, layout: HorizonLayout, rho_old: Mapping[str, float],
-                 rho_new: Mapping[str, float],
-                 constant: Callable[[np.ndarray], Any] | None = None) -> Any:
-    """``w * G_old / G_new`` blockwise (keeps ``y = 2 G w``); ``w`` is (..., T, step size).
+def scale_dual(w: Any, ratio: Any) -> Any:
+    """``w * ratio`` with ``ratio = G_old / G_new`` (:func:`dual_ratio`): the scaled dual after
+    the consensus weight changes, so that ``y = 2 G w`` is unchanged (any array type; a
+    compiled kernel applies it entry by entry)."""
+    return w * ratio
 
-    A block whose weight is 0 before and after keeps its dual (ratio 1). The ratio vectors
-    are memoised by (block sizes, dtype, rho items): a schedule repeats them every control
-    step.
-    ``constant`` moves the (memoised) ratio to the kernel's device once (JAX).
-    """
-    key = (layout.nx, layout.nlam, layout.nu, layout.n_eta, w.dtype.char,
+
+def dual_ratio(layout: HorizonLayout, rho_old: Mapping[str, float],
+               rho_new: Mapping[str, float], dtype: Any) -> np.ndarray:
+    """``G_old / G_new`` blockwise (step size,) in ``dtype``; a block whose weight is 0 before
+    and after keeps its dual (ratio 1). Memoised by (block sizes, dtype, rho items): a
+    schedule repeats them every control step."""
+    key = (layout.nx, layout.nlam, layout.nu, layout.n_eta, np.dtype(dtype).char,
            *rho_old.items(), None, *rho_new.items())
     ratio = _RATIOS.get(key)
     if ratio is None:
         old = weight_vector(layout, rho_old)
         new = weight_vector(layout, rho_new)
-        ratio = np.divide(old, new, out=np.ones_like(old), where=new != 0).astype(w.dtype)
+        ratio = np.divide(old, new, out=np.ones_like(old), where=new != 0).astype(dtype)
         if len(_RATIOS) > 256:
             _RATIOS.clear()
         _RATIOS[key] = ratio
-    return w * (ratio if constant is None else constant(ratio))
+    return ratio
+
+
+def rescale_dual(w: Any, layout: HorizonLayout, rho_old: Mapping[str, float],
+                 rho_new: Mapping[str, float],
+                 constant: Callable[[np.ndarray], Any] | None = None) -> Any:
+    """:func:`scale_dual` by :func:`dual_ratio`: ``w * G_old / G_new`` blockwise (keeps
+    ``y = 2 G w``); ``w`` is (..., T, step size). ``constant`` moves the (memoised) ratio to
+    the kernel's device once (JAX)."""
+    ratio = dual_ratio(layout, rho_old, rho_new, w.dtype)
+    return scale_dual(w, ratio if constant is None else constant(ratio))
+
+
+def plan_ratios(layout: HorizonLayout, plan: Sequence[Mapping[str, float]], rescale: bool,
+                dtype: Any) -> np.ndarray:
+    """The rescaling the loop applies after each iteration of a planned schedule but the
+    last: row ``i`` (len(plan) - 1, step size) is :func:`dual_ratio` from ``plan[i]`` to
+    ``plan[i + 1]`` when ``rescale`` and they differ, else ones (multiplying by 1 is exact)."""
+    ratios = np.ones((max(len(plan) - 1, 0), layout.step_size), dtype=dtype)
+    for i in range(len(plan) - 1):
+        if rescale and plan[i + 1] != plan[i]:
+            ratios[i] = dual_ratio(layout, plan[i], plan[i + 1], dtype)
+    return ratios
 
 
 class _Loop:
@@ -219,36 +244,75 @@ def run_admm(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any,
         Compute the residuals every iteration even when the schedule does not need them. The
         per-iteration trace is kept when residuals are computed or iterates kept (a failed
         iteration is always traced).
+
+    A kernel with ``run_plan`` (the compiled one) runs a planned schedule with ``fixed``
+    stopping, when nothing is recorded per iteration, in one call (:func:`_run_planned`:
+    the iterations below, rescaling by :func:`plan_ratios`, compiled); else the loop calls
+    the kernel once per iteration.
     """
     started = time.perf_counter()
     loop = _Loop(kernel, options, inputs.weights, record_residuals)
     kernel.timings = FastTimings()
-    rho = dict(options.rho0)
-    rho_used = dict(rho)
-    inputs.plan = plan = loop.schedule.plan(rho, options.admm_iterations)
-    z_steps: Any = None
-    z_terminal: Any = None
-    previous: float | None = None
-    status, ok, completed = f"{options.admm_iterations} iterations", True, 0
-    step = getattr(kernel, "fused", None) or admm_iteration
-    constant = getattr(kernel, "constant", None)
+    state = _State(delta, w, dict(options.rho0))
+    inputs.plan = plan = loop.schedule.plan(state.rho, options.admm_iterations)
     try:
         kernel.start(inputs)
     except KernelFailure as failure:
-        status, ok = f"{failure.kind}: {failure.reason}" if failure.reason else failure.kind, \
-            False
-    for i in range(options.admm_iterations if ok else 0):
+        state.status = f"{failure.kind}: {failure.reason}" if failure.reason else failure.kind
+        state.ok = False
+    if state.ok and plan and getattr(kernel, "run_plan", None) is not None and \
+            options.stopping == Stopping.FIXED and not loop.need_residuals and \
+            not options.keep_iterates:
+        _run_planned(kernel, options, loop, plan, state)
+    elif state.ok:
+        _run_iterations(kernel, options, loop, plan, state)
+    u, u_raw, ok, status = _output(kernel, options, inputs, state.delta, state.z_steps,
+                                   state.ok, state.status, fallback_input, force_limit)
+    kernel.timings.total = time.perf_counter() - started
+    return C3Solution(u=u, u_raw=u_raw, ok=ok, status=status, iterations=state.completed,
+                      delta=state.delta, w=state.w, z_steps=state.z_steps,
+                      z_terminal=state.z_terminal, rho=state.rho_used,
+                      weights=inputs.weights, layout=kernel.layout, variant=options.variant,
+                      trace=loop.trace, iterates=loop.iterates,
+                      cache_hits=int(getattr(kernel, "step_cache_hits", 0)),
+                      cache_misses=int(getattr(kernel, "step_cache_misses", 0)),
+                      timings=kernel.timings, kernel=kernel.name)
+
+
+@dataclass
+class _State:
+    """The iterates and outcome of one control step's loop (:func:`run_admm`)."""
+
+    delta: Any
+    w: Any
+    rho: dict[str, float]
+    rho_used: dict[str, float] = field(default_factory=dict)
+    z_steps: Any = None
+    z_terminal: Any = None
+    completed: int = 0
+    ok: bool = True
+    status: str = ""
+
+    def __post_init__(self) -> None:
+        self.rho_used = dict(self.rho)
+
+
+def _run_iterations(kernel: Kernel, options: C3Options, loop: _Loop,
+                    plan: Sequence[Mapping[str, float]] | None, state: _State) -> None:
+    """The iterations, one kernel call each (:func:`admm_iteration` or ``kernel.fused``),
+    with residuals, trace, stopping and the rho update (module docstring)."""
+    rho, delta, w = state.rho, state.delta, state.w
+    previous: float | None = None
+    state.status = f"{options.admm_iterations} iterations"
+    step = getattr(kernel, "fused", None) or admm_iteration
+    constant = getattr(kernel, "constant", None)
+    for i in range(options.admm_iterations):
         iteration_start = time.perf_counter()
-        rho_used = rho  # never changed in place: the schedule returns a new dict
+        state.rho_used = rho  # never changed in place: the schedule returns a new dict
         try:
             z, terminal, new_delta, new_w = step(kernel, rho, delta, w)
         except KernelFailure as failure:
-            message = failure.reason if failure.kind == "QP failed" else str(failure)
-            loop.trace.append(i, rho, failed=True, non_finite=failure.non_finite,
-                              message=message, **failure.info,
-                              iteration_time=time.perf_counter() - iteration_start)
-            status, ok = (f"{failure.kind} at iteration {i}: {failure.reason}"
-                          if failure.reason else f"{failure.kind} at iteration {i}"), False
+            _fail(loop, state, i, rho, failure, time.perf_counter() - iteration_start)
             break
         consensus, consensus_inf, dual = loop.residuals(rho, z, delta, new_delta)
         if options.keep_iterates:
@@ -259,32 +323,58 @@ def run_admm(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any,
             loop.trace.append(i, rho, consensus_residual=consensus,
                               consensus_residual_inf=consensus_inf, dual_residual=dual,
                               iteration_time=time.perf_counter() - iteration_start, **info)
-        delta, w, z_steps, z_terminal = new_delta, new_w, z, terminal
-        completed = i + 1
+        delta, w, state.z_steps, state.z_terminal = new_delta, new_w, z, terminal
+        state.delta, state.w = delta, w
+        state.completed = i + 1
         if options.stopping == Stopping.RESIDUAL and loop.converged(
                 rho, z, new_delta, new_w, consensus, dual):
-            status = f"converged in {completed} iterations (r={consensus:.3g}, s={dual:.3g})"
-            break
+            state.status = (f"converged in {state.completed} iterations (r={consensus:.3g}, "
+                            f"s={dual:.3g})")
+            return
         if i + 1 < options.admm_iterations:
-            updated = plan[i + 1] if plan else loop.schedule.next(rho, consensus, previous,
-                                                                  dual)
+            updated = dict(plan[i + 1]) if plan else loop.schedule.next(rho, consensus,
+                                                                        previous, dual)
             if options.rescale_dual and updated != rho:
-                w = rescale_dual(w, kernel.layout, rho, updated, constant)
+                w = state.w = rescale_dual(w, kernel.layout, rho, updated, constant)
             rho = updated
         previous = consensus
     else:
-        if ok and options.stopping == Stopping.RESIDUAL:
-            status = f"iteration limit {options.admm_iterations} reached"
-    u, u_raw, ok, status = _output(kernel, options, inputs, delta, z_steps, ok, status,
-                                   fallback_input, force_limit)
-    kernel.timings.total = time.perf_counter() - started
-    return C3Solution(u=u, u_raw=u_raw, ok=ok, status=status, iterations=completed,
-                      delta=delta, w=w, z_steps=z_steps, z_terminal=z_terminal, rho=rho_used,
-                      weights=inputs.weights, layout=kernel.layout, variant=options.variant,
-                      trace=loop.trace, iterates=loop.iterates,
-                      cache_hits=int(getattr(kernel, "step_cache_hits", 0)),
-                      cache_misses=int(getattr(kernel, "step_cache_misses", 0)),
-                      timings=kernel.timings, kernel=kernel.name)
+        if options.stopping == Stopping.RESIDUAL:
+            state.status = f"iteration limit {options.admm_iterations} reached"
+
+
+def _run_planned(kernel: Any, options: C3Options, loop: _Loop,
+                 plan: Sequence[Mapping[str, float]], state: _State) -> None:
+    """The iterations of :func:`_run_iterations` for a planned schedule with ``fixed``
+    stopping and nothing recorded, in one kernel call: ``kernel.run_plan(plan, ratios, delta,
+    w)`` runs iteration ``i`` (QP step, projection, :func:`dual_update`) with ``plan[i]`` and
+    then, before the next, :func:`scale_dual` by ``ratios[i]`` (:func:`plan_ratios`); it
+    returns a :class:`PlanRun`. Same iterates, status and trace as the iteration-by-iteration
+    loop."""
+    ratios = plan_ratios(kernel.layout, plan, options.rescale_dual, kernel.dtype)
+    started = time.perf_counter()
+    run: PlanRun = kernel.run_plan(plan, ratios, state.delta, state.w)
+    state.status = f"{options.admm_iterations} iterations"
+    state.completed = run.completed
+    state.delta, state.w, state.z_steps, state.z_terminal = run.delta, run.w, run.z_steps, \
+        run.z_terminal
+    last = min(run.completed, len(plan) - 1)
+    state.rho_used = dict(plan[last])
+    if run.failure is not None:
+        _fail(loop, state, run.completed, plan[run.completed], run.failure,
+              time.perf_counter() - started)
+
+
+def _fail(loop: _Loop, state: _State, i: int, rho: Mapping[str, float],
+          failure: KernelFailure, elapsed: float) -> None:
+    """Trace the failed iteration ``i`` and set the step's status (the loop stops)."""
+    message = failure.reason if failure.kind == "QP failed" else str(failure)
+    loop.trace.append(i, rho, failed=True, non_finite=failure.non_finite, message=message,
+                      **failure.info, iteration_time=elapsed)
+    state.status = (f"{failure.kind} at iteration {i}: {failure.reason}" if failure.reason
+                    else f"{failure.kind} at iteration {i}")
+    state.ok = False
+    state.rho_used = dict(rho)
 
 
 def _output(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any, z_steps: Any,
