@@ -128,6 +128,8 @@ class CompiledC3PlusKernel:
         """Buffer of one group of the plan (:func:`plan_group` rho values)."""
         self._plan: list[Mapping[str, float]] = []
         self._plan_index: dict[tuple[float, ...], int] = {}
+        self._plan_given: Sequence[Mapping[str, float]] | None = None
+        self._plan_keys: list[tuple[float, ...]] = []
         self._entries: dict[tuple[float, ...], _Entry] = {}
         """The rho values whose factors are in the group buffer now."""
         self.factor_seconds = 0.0
@@ -187,9 +189,11 @@ class CompiledC3PlusKernel:
         self._p = p.astype(self.dtype)
         self._shared = bool(shared_inputs)
         self._plan = list(planned_rhos or ())
+        self._plan_given = planned_rhos
+        self._plan_keys = [rho_key(rho) for rho in self._plan]
         self._plan_index = {}
         for i in range(len(self._plan) - 1, -1, -1):  # a repeated rho: its first place
-            self._plan_index[rho_key(self._plan[i])] = i
+            self._plan_index[self._plan_keys[i]] = i
         if self._plan:
             group = plan_group(n, len(self._plan))
             if self._planned is None or self._planned.shape != (group, n, self.mpc.horizon):
@@ -247,11 +251,11 @@ class CompiledC3PlusKernel:
         arrays. A failed iteration ends the run with the last completed one's iterates and
         the :class:`KernelFailure` :meth:`step` would raise."""
         pattern = self.structure  # raises before start()
-        if self._planned is None or len(plan) != len(self._plan) or \
-                any(rho_key(a) != rho_key(b) for a, b in zip(plan, self._plan, strict=True)):
+        if self._planned is None or (plan is not self._plan_given and
+                                     [rho_key(rho) for rho in plan] != self._plan_keys):
             raise InputError("run_plan needs the plan given to start()")
         delta, w = self._checked(delta), self._checked(w)
-        _, (bases, two_rho_eta, consts) = self._stack(plan)
+        _, (bases, two_rho_eta, consts) = self._stack(self._plan, self._plan_keys)
         iterates, terminals = self._iterate_sets()
         iterates[0, 0], iterates[0, 1] = delta, w
         f, a = self._planned, self._arrays
@@ -316,22 +320,9 @@ class CompiledC3PlusKernel:
             self._rho_constants.clear()
             self._stacked.clear()
         a = self._arrays
-        a["A"][...] = lcs.A
-        a["Bv"][:, :, :nlam] = lcs.D
-        a["Bv"][:, :, nlam:] = lcs.B
-        a["d"][...] = lcs.d
-        Mc = a["Mc"]  # [M c] = [E F H c]
-        Mc[:, :, :nx] = lcs.E
-        Mc[:, :, nx:nx + nlam] = lcs.F
-        Mc[:, :, nx + nlam:ny] = lcs.H
-        Mc[:, :, ny] = lcs.c
-        a["Mt"][...] = np.moveaxis(Mc, 0, -1)  # samples last, for the lane passes
-        M = Mc[:, :, :ny]
-        np.matmul(np.swapaxes(M, 1, 2), M, out=a["MtM"])
-        mask = np.zeros((nx, ny + 1), dtype=bool)
-        np.any(a["A"] != 0, axis=0, out=mask[:, :nx])
-        np.any(a["Bv"] != 0, axis=0, out=mask[:, nx:ny])
-        np.any(a["d"] != 0, axis=0, out=mask[:, ny])
+        mask = np.empty((nx, ny + 1), dtype=np.bool_)
+        self._timed(kernels.assemble, lcs.A, lcs.B, lcs.D, lcs.d, lcs.E, lcs.F, lcs.H, lcs.c,
+                    self._zero, a["A"], a["Bv"], a["d"], a["Mc"], a["Mt"], a["MtM"], mask)
         if self._structure_mask is None or not np.array_equal(mask, self._structure_mask):
             self._structure_mask = mask
             self._structure = pattern = kernels.structure(mask)
@@ -403,11 +394,13 @@ class CompiledC3PlusKernel:
         self.flops += len(rhos) * a["A"].shape[0] * self._lane_flops
         return keys
 
-    def _stack(self, rhos: Sequence[Mapping[str, float]]
+    def _stack(self, rhos: Sequence[Mapping[str, float]],
+               keys: list[tuple[float, ...]] | None = None
                ) -> tuple[list[tuple[float, ...]], tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """The rho keys and, stacked over ``rhos`` in the working precision (memoised),
-        ``(bases (m, ny, ny), 2 rho_eta (m,), consts (m, ny + 3))`` (:meth:`_constants`)."""
-        keys = [rho_key(rho) for rho in rhos]
+        """The rho keys (given, or computed) and, stacked over ``rhos`` in the working
+        precision (memoised), ``(bases (m, ny, ny), 2 rho_eta (m,), consts (m, ny + 3))``
+        (:meth:`_constants`)."""
+        keys = keys if keys is not None else [rho_key(rho) for rho in rhos]
         key = tuple(keys)
         stacked = self._stacked.get(key)
         if stacked is None:

@@ -67,8 +67,8 @@ from typing import Any, NamedTuple, TypeVar, cast
 import numba
 import numpy as np
 
-__all__ = ["LANE_BLOCK", "Structure", "factor_flops", "factorize_batch", "jit", "setup_flops",
-           "structure"]
+__all__ = ["LANE_BLOCK", "Structure", "assemble", "factor_flops", "factorize_batch", "jit",
+           "setup_flops", "structure"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -378,3 +378,60 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any,
         for b in range(a + 1, nx):
             for l in range(nl):
                 S[b, a, l] = S[a, b, l]
+
+
+@jit
+def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.ndarray,
+             F: np.ndarray, H: np.ndarray, c: np.ndarray, zero: Any, A_out: np.ndarray,
+             Bv: np.ndarray, d_out: np.ndarray, Mc: np.ndarray, Mt: np.ndarray,
+             MtM: np.ndarray, mask: np.ndarray) -> None:
+    """The kernel's per-step data from an LCS batch ``x+ = A x + B u + D lam + d``, ``eta = E x
+    + F lam + H u + c``, in the output arrays' precision: ``A_out``, ``B_v = [D B]``, ``d_out``,
+    ``[M c] = [E F H c]`` (n, nlam, ny + 1) and the same with the samples last (nlam, ny + 1,
+    n), ``M^T M`` (n, ny, ny; each entry's sum over the rows of ``M`` in order, the upper
+    triangle mirrored) and ``mask`` (nx, ny + 1): the entries of ``[A B_v d]`` that are not
+    zero in some sample (:func:`structure`)."""
+    n, nx, nu = B.shape
+    nlam = D.shape[2]
+    ny = nx + nlam + nu
+    M, product = np.empty((nlam, ny)), np.empty((ny, ny))
+    mask[:, :] = False
+    for j in range(n):
+        for a in range(nx):
+            for b in range(nx):
+                A_out[j, a, b] = A[j, a, b]
+                mask[a, b] |= A_out[j, a, b] != zero
+            for b in range(nlam):
+                Bv[j, a, b] = D[j, a, b]
+                mask[a, nx + b] |= Bv[j, a, b] != zero
+            for b in range(nu):
+                Bv[j, a, nlam + b] = B[j, a, b]
+                mask[a, nx + nlam + b] |= Bv[j, a, nlam + b] != zero
+            d_out[j, a] = d[j, a]
+            mask[a, ny] |= d_out[j, a] != zero
+        for r in range(nlam):
+            for b in range(nx):
+                Mc[j, r, b] = E[j, r, b]
+            for b in range(nlam):
+                Mc[j, r, nx + b] = F[j, r, b]
+            for b in range(nu):
+                Mc[j, r, nx + nlam + b] = H[j, r, b]
+            Mc[j, r, ny] = c[j, r]
+            for b in range(ny + 1):
+                Mt[r, b, j] = Mc[j, r, b]
+        for r in range(nlam):  # this sample's M as given (float64)
+            for b in range(nx):
+                M[r, b] = E[j, r, b]
+            for b in range(nlam):
+                M[r, nx + b] = F[j, r, b]
+            for b in range(nu):
+                M[r, nx + nlam + b] = H[j, r, b]
+        product[:, :] = 0.0
+        for r in range(nlam):
+            for a in range(ny):
+                for b in range(a, ny):
+                    product[a, b] += M[r, a] * M[r, b]
+        for a in range(ny):
+            for b in range(a, ny):
+                MtM[j, a, b] = product[a, b]
+                MtM[j, b, a] = product[a, b]

@@ -136,6 +136,8 @@ def shift_warm_start(delta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
 
 _RATIOS: dict[tuple[Any, ...], np.ndarray] = {}
 """Memoised ratio vectors of :func:`dual_ratio`."""
+_PLAN_RATIOS: dict[tuple[Any, ...], np.ndarray] = {}
+"""Memoised ratio arrays of :func:`plan_ratios`."""
 
 
 def scale_dual(w: Any, ratio: Any) -> Any:
@@ -177,11 +179,20 @@ def plan_ratios(layout: HorizonLayout, plan: Sequence[Mapping[str, float]], resc
                 dtype: Any) -> np.ndarray:
     """The rescaling the loop applies after each iteration of a planned schedule but the
     last: row ``i`` (len(plan) - 1, step size) is :func:`dual_ratio` from ``plan[i]`` to
-    ``plan[i + 1]`` when ``rescale`` and they differ, else ones (multiplying by 1 is exact)."""
-    ratios = np.ones((max(len(plan) - 1, 0), layout.step_size), dtype=dtype)
-    for i in range(len(plan) - 1):
-        if rescale and plan[i + 1] != plan[i]:
-            ratios[i] = dual_ratio(layout, plan[i], plan[i + 1], dtype)
+    ``plan[i + 1]`` when ``rescale`` and they differ, else ones (multiplying by 1 is exact).
+    Memoised by (block sizes, dtype, rescale, the plan's items): the same array comes back
+    for the same plan (read it, do not change it)."""
+    key = (layout.nx, layout.nlam, layout.nu, layout.n_eta, np.dtype(dtype).char, rescale,
+           *(tuple(rho.items()) for rho in plan))
+    ratios = _PLAN_RATIOS.get(key)
+    if ratios is None:
+        ratios = np.ones((max(len(plan) - 1, 0), layout.step_size), dtype=dtype)
+        for i in range(len(plan) - 1):
+            if rescale and plan[i + 1] != plan[i]:
+                ratios[i] = dual_ratio(layout, plan[i], plan[i + 1], dtype)
+        if len(_PLAN_RATIOS) > 64:
+            _PLAN_RATIOS.clear()
+        _PLAN_RATIOS[key] = ratios
     return ratios
 
 
