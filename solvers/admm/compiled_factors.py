@@ -1,8 +1,8 @@
 """Where the compiled C3+ kernel keeps its factorisations (:mod:`.compiled`).
 
 :class:`CompiledFactors` holds the factors of a group of rho values for every sample in
-preallocated arrays, samples on the last axis; :func:`plan_group` says how many planned rho
-values are factorised together; :func:`rho_key` keys plans and caches by the rho values.
+preallocated arrays, (rho, sample) lanes on the last axis; :func:`plan_group` says how many
+planned rho values are factorised together; :func:`rho_key` keys plans and caches by the rho values.
 """
 
 from __future__ import annotations
@@ -21,13 +21,18 @@ __all__ = ["CompiledFactors", "factor_failure", "plan_group", "rho_key"]
 
 @dataclass
 class CompiledFactors:
-    """Factorisations of ``m`` rho values for ``n`` samples (:func:`kernels.factorize_batch`).
+    """Factorisations of ``m`` rho values (*slots*) for ``n`` samples
+    (:func:`kernels.factorize_batch`), every array with the *lane* ``l = i n + j`` (slot ``i``,
+    sample ``j``) on its last axis: a group of at most
+    :data:`~c3bench.solvers.admm.compiled_kernels.LANE_BLOCK` lanes is factorised in place,
+    the factorisation's work arrays are these arrays (no copy), and the linear passes read
+    slot ``i``'s samples as the contiguous run of lanes from ``i n`` (from
+    :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE` samples on as vector lanes).
 
-    ``Y`` (m, T, nv, nx, n) = ``L^-1 Q_vx``, ``L`` (m, T, nv, nv, n) lower Cholesky factors of
-    ``Q_vv``, ``Sd`` (m, T, nx, n), ``D`` (m, ny, n), ``ABd`` (m, nx, ny + 1, n) the scaled
-    ``[A B_v d]`` (samples last: from :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE`
-    samples on, the linear passes work the samples as vector lanes);
-    ``failed`` (m, n): -1 or the time step whose Cholesky factorisation failed.
+    ``Y`` (T, nv, nx, m n) = ``L^-1 Q_vx``, ``L`` (T, nv, nv, m n) lower Cholesky factors of
+    ``Q_vv`` (upper triangle 0), ``Sd`` (T, nx, m n), ``D`` (ny, m n), ``ABd`` (nx, ny + 1,
+    m n) the scaled ``[A B_v d]``; ``failed`` (m n,): -1 or the time step whose Cholesky
+    factorisation failed.
     """
 
     Y: np.ndarray
@@ -36,29 +41,33 @@ class CompiledFactors:
     D: np.ndarray
     ABd: np.ndarray
     failed: np.ndarray
+    slots: int
+    samples: int
 
     @classmethod
     def empty(cls, m: int, n: int, T: int, nx: int, nv: int, dtype: np.dtype[Any]
               ) -> CompiledFactors:
-        return cls(Y=np.empty((m, T, nv, nx, n), dtype), L=np.zeros((m, T, nv, nv, n), dtype),
-                   Sd=np.empty((m, T, nx, n), dtype), D=np.empty((m, nx + nv, n), dtype),
-                   ABd=np.empty((m, nx, nx + nv + 1, n), dtype),
-                   failed=np.full((m, n), -1, np.int64))
+        lanes = m * n
+        return cls(Y=np.empty((T, nv, nx, lanes), dtype), L=np.zeros((T, nv, nv, lanes), dtype),
+                   Sd=np.empty((T, nx, lanes), dtype), D=np.empty((nx + nv, lanes), dtype),
+                   ABd=np.empty((nx, nx + nv + 1, lanes), dtype),
+                   failed=np.full(lanes, -1, np.int64), slots=m, samples=n)
 
     @property
     def shape(self) -> tuple[int, ...]:
         """``(m, n, T)``."""
-        return (self.Y.shape[0], self.Y.shape[4], self.Y.shape[1])
+        return (self.slots, self.samples, self.Y.shape[0])
 
 
 def plan_group(samples: int, planned: int) -> int:
-    """How many planned rho values are factorised together: enough for a full block of
+    """How many planned rho values are factorised together: as many as fill one block of
     :data:`~c3bench.solvers.admm.compiled_kernels.LANE_BLOCK` lanes (rho x sample pairs),
-    no more, so that one group's factors stay in the core's cache until the iterations
-    that use them (measured at 16 samples: factorising 2 rho values before their two
-    iterations is 10 % faster than factorising all 10 up front; at 64 samples one at a
-    time is 17 % faster; at 1 sample all 10 together is 2-3 times faster than fewer)."""
-    return min(planned, max(1, -(-kernels.LANE_BLOCK // samples)))
+    at least one, so that a group is factorised in place in one block and its factors stay
+    in the core's cache until the iterations that use them (measured at 16 samples:
+    factorising 2 rho values before their two iterations is 10 % faster than factorising all
+    10 up front; at 64 samples one at a time is 17 % faster; at 1 sample all 10 together is
+    2-3 times faster than fewer)."""
+    return min(planned, max(1, kernels.LANE_BLOCK // samples))
 
 
 def rho_key(rho: Mapping[str, float]) -> tuple[float, ...]:
@@ -69,7 +78,8 @@ def rho_key(rho: Mapping[str, float]) -> tuple[float, ...]:
 
 def factor_failure(factors: CompiledFactors, slot: int, rho: Mapping[str, float]) -> str | None:
     """Why ``slot``'s factorisation failed (the first failed sample), or ``None``."""
-    failed = factors.failed[slot]
+    n = factors.samples
+    failed = factors.failed[slot * n:(slot + 1) * n]
     if failed.max() < 0:
         return None
     j = int(np.argmax(failed >= 0))

@@ -32,22 +32,27 @@ The factorisation divides by the diagonal of ``L`` through its reciprocals (one 
 per pivot instead of one per entry of ``L`` and ``Y``; vector division is many times
 slower than multiplication), which changes results by rounding only.
 
-**Layout.** :func:`factorize_batch` works every (rho value, sample) pair as a *lane*:
-blocks of up to :data:`LANE_BLOCK` lanes sit in local arrays with the lane index last, so
+**Layout.** :func:`factorize_batch` works every (rho value, sample) pair as a *lane*,
+lane ``i n + j`` for rho ``i`` and sample ``j``, with the lane index last in every array, so
 every innermost loop runs over lanes and vectorises (no sum is reassociated: ``fastmath``
-stays off); the factors are copied out with the samples on the last axis, so
-:func:`c3bench.solvers.admm.compiled_passes.solve_project` (the linear passes, projection and
-dual update of one iteration) works the samples as vector lanes too, from its
+stays off). A group of up to :data:`LANE_BLOCK` lanes (a plan group,
+:func:`c3bench.solvers.admm.compiled_factors.plan_group`) is worked in place: the output
+arrays are the work arrays, nothing is copied. Larger batches are worked in blocks of
+:data:`LANE_BLOCK` lanes in local arrays, each copied into its lanes of the outputs (writing
+a block at an offset into the outputs directly measured 1.5-2.3 times slower: LLVM's
+vectoriser gives up on most of those loops). The linear passes of
+:func:`c3bench.solvers.admm.compiled_passes.solve_project` read rho ``i``'s samples as the
+contiguous lanes from ``i n``, as vector lanes from its
 :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE` samples on (below, one sample at a
-time). Writing the factors in place instead (lanes at an offset into the output arrays)
-measured 1.5-2.3 times slower: LLVM's vectoriser gives up on most of those loops. Small
-dense algebra (products, Cholesky, triangular solves) is written out by hand; nothing calls
-``numpy.linalg``.
+time). Small dense algebra (products, Cholesky, triangular solves) is written out by hand;
+nothing calls ``numpy.linalg``.
 
 Measured (planar cube, ``nx = nlam + nu = 10``, ``T = 7``, one core, load average below 1):
-one group of 2 rho values for 16 samples (32 lanes) takes 0.19-0.22 ms (0.30 ms dense, with
-``K``), 10 rho values for one sample 0.13 ms (0.19 ms), one rho value for 64 samples 0.39
-ms (0.59 ms). :func:`factor_flops` counts what the loops execute.
+one group of 2 rho values for 16 samples (32 lanes) takes 0.17-0.19 ms (0.19-0.22 copying
+the factors out of a work block, 0.30 ms dense, with ``K``), 10 rho values for one sample
+0.12 ms (0.15 copied out, 0.19 dense), one rho value for 64 samples 0.38 ms (0.42 with the
+earlier copy by runs of samples, 0.59 dense). :func:`factor_flops` counts what the loops
+execute.
 
 Every kernel takes its scalars in the arrays' dtype (``zero``, ``one`` and the rho-derived
 constants), so that float32 arrays are worked in float32 arithmetic throughout.
@@ -158,100 +163,94 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     ``base`` (m, ny, ny) = ``blockdiag(2Q + 2 rho_x I, 2 rho_lam I, 2R + 2 rho_u I)``,
     ``two_rho_eta`` (m,), so ``H_y = base + 2 rho_eta M^T M``; ``PT`` (nx, nx);
     ``column_start``, ``column_rows``: the columns of :class:`Structure`.
-    Outputs (preallocated, samples on the last axis): ``Y`` (m, T, nv, nx, n) = ``L^-1
-    Q_vx``, ``L`` (m, T, nv, nv, n) lower Cholesky factors of ``Q_vv`` (the upper triangle is
-    not written), ``Sd`` (m, T, nx, n) = ``S_{k+1} d``, ``D`` (m, ny, n) scaling, ``ABd`` (m,
-    nx, ny + 1, n) = scaled ``[A B_v d]``; ``failed`` (m, n): -1, or the (first, backward)
-    step whose ``Q_vv`` is not positive definite.
+    Outputs (preallocated, lane ``l = i n + j`` of rho ``i`` and sample ``j`` last, at least
+    ``m n`` lanes): ``Y`` (T, nv, nx, lanes) = ``L^-1 Q_vx``, ``L`` (T, nv, nv, lanes) lower
+    Cholesky factors of ``Q_vv`` (the upper triangle is not written), ``Sd`` (T, nx, lanes) =
+    ``S_{k+1} d``, ``D`` (ny, lanes) scaling, ``ABd`` (nx, ny + 1, lanes) = scaled ``[A B_v
+    d]``; ``failed`` (lanes,): -1, or the (first, backward) step whose ``Q_vv`` is not positive
+    definite.
 
-    Lanes (lane ``i n + j``: rho ``i``, sample ``j``) are worked in blocks of at most
-    :data:`LANE_BLOCK` in contiguous local arrays with the lane index last (so the innermost
-    loops vectorise across lanes); the results are copied out, one run of consecutive
-    samples of one rho at a time, with the samples last (so the linear passes of
-    :func:`c3bench.solvers.admm.compiled_passes.solve_project` vectorise across samples).
+    Up to :data:`LANE_BLOCK` lanes are worked in place: the outputs are the work arrays, so
+    every innermost loop runs over contiguous lanes and vectorises, and nothing is copied.
+    More lanes are worked in blocks of :data:`LANE_BLOCK` in local arrays, each block copied
+    into its lanes of the outputs (writing a block at an offset into the outputs directly
+    measured 1.5-2.3 times slower: LLVM's vectoriser gives up on most of those loops).
     """
     m, n = base.shape[0], A.shape[0]
     nx, nv = A.shape[1], Bv.shape[2]
     ny = nx + nv
-    T = Y.shape[1]
+    T = Y.shape[0]
     lanes = m * n
     LB = min(LANE_BLOCK, lanes)
     dt = A.dtype
-    Hy, S, Db = np.empty((ny, ny, LB), dt), np.empty((nx, nx, LB), dt), np.empty((ny, LB), dt)
-    ABb, SAB = np.empty((nx, ny + 1, LB), dt), np.empty((nx, ny, LB), dt)
-    Qv, Li = np.empty((nv, ny, LB), dt), np.empty((nv, LB), dt)
-    Yb, Lb, Sdb = np.empty((nv, nx, LB), dt), np.zeros((nv, nv, LB), dt), np.empty((nx, LB), dt)
-    sv, fb = np.empty(LB, dt), np.empty(LB, np.int64)
+    Hy, S = np.empty((ny, ny, LB), dt), np.empty((nx, nx, LB), dt)
+    SAB, Qv = np.empty((nx, ny, LB), dt), np.empty((nv, ny, LB), dt)
+    Li, sv = np.empty((nv, LB), dt), np.empty(LB, dt)
     li, lj = np.empty(LB, np.int64), np.empty(LB, np.int64)
+    if lanes <= LANE_BLOCK:
+        _lane_indices(0, lanes, n, li, lj)
+        _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
+                     lanes, Hy, S, D, ABd, sv)
+        failed[:lanes] = -1
+        for k in range(T - 1, -1, -1):
+            _riccati_lanes(k, lanes, nx, nv, zero, one, S, ABd, Hy, SAB, Qv, sv, Li, failed,
+                           column_start, column_rows, Y[k], L[k], Sd[k])
+        return
+    Db, ABb, fb = np.empty((ny, LB), dt), np.empty((nx, ny + 1, LB), dt), np.empty(LB, np.int64)
+    Yb, Lb, Sdb = np.empty((nv, nx, LB), dt), np.zeros((nv, nv, LB), dt), np.empty((nx, LB), dt)
     for l0 in range(0, lanes, LB):
         nl = min(LB, lanes - l0)
-        runs = _block_runs(l0, nl, n)
-        for l in range(nl):
-            li[l], lj[l] = (l0 + l) // n, (l0 + l) % n
+        _lane_indices(l0, nl, n, li, lj)
         _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
                      nl, Hy, S, Db, ABb, sv)
         fb[:] = -1
         for k in range(T - 1, -1, -1):
             _riccati_lanes(k, nl, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, sv, Li, fb,
                            column_start, column_rows, Yb, Lb, Sdb)
-            _store_step(k, runs, Yb, Lb, Sdb, Y, L, Sd)
-        _store_block(runs, fb, Db, ABb, failed, D, ABd)
+            _store_step(k, l0, nl, Yb, Lb, Sdb, Y, L, Sd)
+        _store_block(l0, nl, fb, Db, ABb, failed, D, ABd)
 
 
 @jit
-def _block_runs(l0: int, nl: int, n: int) -> np.ndarray:
-    """The runs of consecutive samples of one rho in the block of lanes ``l0 .. l0 + nl``
-    (lane ``i n + j``): rows ``(i, j0, l, run)``, lanes ``l .. l + run`` of the block are
-    samples ``j0 .. j0 + run`` of rho ``i``."""
-    runs = np.empty((nl // n + 2, 4), np.int64)
-    count, l = 0, 0
-    while l < nl:
-        i, j0 = (l0 + l) // n, (l0 + l) % n
-        run = min(n - j0, nl - l)
-        runs[count, 0], runs[count, 1], runs[count, 2], runs[count, 3] = i, j0, l, run
-        count += 1
-        l += run
-    return runs[:count]
+def _lane_indices(l0: int, nl: int, n: int, li: np.ndarray, lj: np.ndarray) -> None:
+    """The rho ``li[l]`` and sample ``lj[l]`` of lanes ``l0 .. l0 + nl`` (lane ``i n + j``)."""
+    for l in range(nl):
+        li[l], lj[l] = (l0 + l) // n, (l0 + l) % n
 
 
 @jit
-def _store_step(k: int, runs: np.ndarray, Yb: np.ndarray, Lb: np.ndarray, Sdb: np.ndarray,
+def _store_step(k: int, l0: int, nl: int, Yb: np.ndarray, Lb: np.ndarray, Sdb: np.ndarray,
                 Y: np.ndarray, L: np.ndarray, Sd: np.ndarray) -> None:
-    """Copy step ``k`` of the block (``Y``, the lower triangle of ``L``, ``S_{k+1} d``) out,
-    one run of :func:`_block_runs` at a time (the block's work arrays stay compact: the
-    vectoriser handles them much better than the outputs at an offset)."""
+    """Copy step ``k`` of a block (``Y``, the lower triangle of ``L``, ``S_{k+1} d``) into
+    lanes ``l0 .. l0 + nl`` of the outputs."""
     nv, nx = Yb.shape[0], Yb.shape[1]
-    for r in range(runs.shape[0]):
-        i, j0, l, run = runs[r, 0], runs[r, 1], runs[r, 2], runs[r, 3]
-        for a in range(nv):
-            for b in range(nx):
-                for q in range(run):
-                    Y[i, k, a, b, j0 + q] = Yb[a, b, l + q]
-            for b in range(a + 1):  # lower triangle (the rest stays 0)
-                for q in range(run):
-                    L[i, k, a, b, j0 + q] = Lb[a, b, l + q]
-        for a in range(nx):
-            for q in range(run):
-                Sd[i, k, a, j0 + q] = Sdb[a, l + q]
+    for a in range(nv):
+        for b in range(nx):
+            for q in range(nl):
+                Y[k, a, b, l0 + q] = Yb[a, b, q]
+        for b in range(a + 1):  # lower triangle (the rest stays 0)
+            for q in range(nl):
+                L[k, a, b, l0 + q] = Lb[a, b, q]
+    for a in range(nx):
+        for q in range(nl):
+            Sd[k, a, l0 + q] = Sdb[a, q]
 
 
 @jit
-def _store_block(runs: np.ndarray, fb: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
+def _store_block(l0: int, nl: int, fb: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
                  failed: np.ndarray, D: np.ndarray, ABd: np.ndarray) -> None:
-    """Copy the block's failures, scaling and scaled ``[A B_v d]`` out (as
-    :func:`_store_step`)."""
+    """Copy a block's failures, scaling and scaled ``[A B_v d]`` into lanes ``l0 .. l0 +
+    nl`` of the outputs."""
     ny, nx = Db.shape[0], ABb.shape[0]
-    for r in range(runs.shape[0]):
-        i, j0, l, run = runs[r, 0], runs[r, 1], runs[r, 2], runs[r, 3]
-        for q in range(run):
-            failed[i, j0 + q] = fb[l + q]
-        for a in range(ny):
-            for q in range(run):
-                D[i, a, j0 + q] = Db[a, l + q]
-        for a in range(nx):
-            for b in range(ny + 1):
-                for q in range(run):
-                    ABd[i, a, b, j0 + q] = ABb[a, b, l + q]
+    for q in range(nl):
+        failed[l0 + q] = fb[q]
+    for a in range(ny):
+        for q in range(nl):
+            D[a, l0 + q] = Db[a, q]
+    for a in range(nx):
+        for b in range(ny + 1):
+            for q in range(nl):
+                ABd[a, b, l0 + q] = ABb[a, b, q]
 
 
 @jit

@@ -68,7 +68,8 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
                   column_rows: np.ndarray, row_start: np.ndarray, row_columns: np.ndarray,
                   p: np.ndarray, shared: bool, box: np.ndarray, zero: Any, z_steps: np.ndarray,
                   z_terminal: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray) -> bool:
-    """QP step (linear passes of factorisation ``index`` of ``Y`` (m, T, nv, nx, n) etc.,
+    """QP step (linear passes of factorisation slot ``index``: lanes ``index n .. index n + n``
+    of ``Y`` (T, nv, nx, lanes) etc.,
     :func:`c3bench.solvers.admm.compiled_kernels.factorize_batch`), projection and dual update
     for every sample; ``False`` when the QP solution is not finite. ``vectors`` = ``(x0, g_x,
     g_T)`` (3, nx), ``Mc`` = ``[M c]`` (n, nlam, ny + 1), ``Mt`` the same with the samples
@@ -92,16 +93,17 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
         return _solve_project_samples(vectors, delta, w, Mc, consts, Y, L, Sd, D, ABd, index,
                                       column_start, column_rows, row_start, row_columns, p,
                                       shared, box, zero, z_steps, z_terminal, new_delta, new_w)
-    nx, nv = Y.shape[3], Y.shape[2]
+    nx, nv = Y.shape[2], Y.shape[1]
     nlam = Mc.shape[1]
     ny = nx + nv
     dt = delta.dtype
-    Yi, Li, Sdi, Di, AB = Y[index], L[index], Sd[index], D[index], ABd[index]
+    lanes = np.uint64(n)  # unsigned lane indices: numba adds no negative-index wraparound
+    o = np.uint64(index) * lanes  # slot index's samples: lanes o .. o + n of the factors
     x0, gx, gT = vectors[0], vectors[1], vectors[2]
     g2 = consts[:ny]
     two_rho_eta = consts[ny]
     dw = np.empty((T, ns, n), dt)  # delta - w
-    for j in range(n):
+    for j in range(lanes):
         for k in range(T):
             for a in range(ns):
                 dw[k, a, j] = delta[j, k, a] - w[j, k, a]
@@ -111,94 +113,94 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
     v, x, xn = np.empty((nv, n), dt), np.empty((nx, n), dt), np.empty((nx, n), dt)
     for k in range(T):  # gradient
         for b in range(nlam):
-            for j in range(n):
+            for j in range(lanes):
                 eta[b, j] = Mt[b, ny, j] - dw[k, ny + b, j]
         for a in range(ny):
-            for j in range(n):
+            for j in range(lanes):
                 gy[k, a, j] = zero
             for b in range(nlam):
-                for j in range(n):
+                for j in range(lanes):
                     gy[k, a, j] += Mt[b, a, j] * eta[b, j]
-            for j in range(n):
+            for j in range(lanes):
                 g = dw[k, a, j] * g2[a]
                 if a < nx:
                     g += gx[a]
-                gy[k, a, j] = (g + gy[k, a, j] * two_rho_eta) * Di[a, j]
+                gy[k, a, j] = (g + gy[k, a, j] * two_rho_eta) * D[a, o + j]
     for a in range(nx):
-        for j in range(n):
-            e[a, j] = Sdi[T - 1, a, j] + gT[a] * Di[a, j]
+        for j in range(lanes):
+            e[a, j] = Sd[T - 1, a, o + j] + gT[a] * D[a, o + j]
     for k in range(T - 1, -1, -1):  # backward pass
         for a in range(nv):  # r = g_v + B_v^T e
-            for j in range(n):
+            for j in range(lanes):
                 r[a, j] = gy[k, nx + a, j]
             for q in range(column_start[nx + a], column_start[nx + a + 1]):
                 b = column_rows[q]
-                for j in range(n):
-                    r[a, j] += e[b, j] * AB[b, nx + a, j]
+                for j in range(lanes):
+                    r[a, j] += e[b, j] * ABd[b, nx + a, o + j]
         for a in range(nv):  # L t = r
-            for j in range(n):
+            for j in range(lanes):
                 tt[k, a, j] = r[a, j]
             for b in range(a):
-                for j in range(n):
-                    tt[k, a, j] -= Li[k, a, b, j] * tt[k, b, j]
-            for j in range(n):
-                tt[k, a, j] = tt[k, a, j] / Li[k, a, a, j]
+                for j in range(lanes):
+                    tt[k, a, j] -= L[k, a, b, o + j] * tt[k, b, j]
+            for j in range(lanes):
+                tt[k, a, j] = tt[k, a, j] / L[k, a, a, o + j]
         if k > 0:
             for a in range(nx):  # e <- S_k d + g_x + A^T e - Y^T t
-                for j in range(n):
-                    xn[a, j] = gy[k, a, j] + Sdi[k - 1, a, j]
+                for j in range(lanes):
+                    xn[a, j] = gy[k, a, j] + Sd[k - 1, a, o + j]
                 for q in range(column_start[a], column_start[a + 1]):
                     b = column_rows[q]
-                    for j in range(n):
-                        xn[a, j] += e[b, j] * AB[b, a, j]
+                    for j in range(lanes):
+                        xn[a, j] += e[b, j] * ABd[b, a, o + j]
                 for b in range(nv):
-                    for j in range(n):
-                        xn[a, j] -= tt[k, b, j] * Yi[k, b, a, j]
+                    for j in range(lanes):
+                        xn[a, j] -= tt[k, b, j] * Y[k, b, a, o + j]
             for a in range(nx):
-                for j in range(n):
+                for j in range(lanes):
                     e[a, j] = xn[a, j]
     for a in range(nx):  # forward pass
-        for j in range(n):
-            x[a, j] = x0[a] / Di[a, j]
+        for j in range(lanes):
+            x[a, j] = x0[a] / D[a, o + j]
             zt[0, a, j] = x0[a]
     for k in range(T):
         for a in range(nv - 1, -1, -1):  # v = -L^-T (Y x + t)
-            for j in range(n):
+            for j in range(lanes):
                 r[a, j] = tt[k, a, j]
             for b in range(nx):
-                for j in range(n):
-                    r[a, j] += Yi[k, a, b, j] * x[b, j]
-            for j in range(n):
+                for j in range(lanes):
+                    r[a, j] += Y[k, a, b, o + j] * x[b, j]
+            for j in range(lanes):
                 v[a, j] = -r[a, j]
             for b in range(a + 1, nv):
-                for j in range(n):
-                    v[a, j] -= Li[k, b, a, j] * v[b, j]
-            for j in range(n):
-                v[a, j] = v[a, j] / Li[k, a, a, j]
-                zt[k, nx + a, j] = v[a, j] * Di[nx + a, j]
+                for j in range(lanes):
+                    v[a, j] -= L[k, b, a, o + j] * v[b, j]
+            for j in range(lanes):
+                v[a, j] = v[a, j] / L[k, a, a, o + j]
+                zt[k, nx + a, j] = v[a, j] * D[nx + a, o + j]
         for a in range(nx):  # x <- A x + B_v v + d
-            for j in range(n):
-                xn[a, j] = AB[a, ny, j]
+            for j in range(lanes):
+                xn[a, j] = ABd[a, ny, o + j]
             for q in range(row_start[a], row_start[a + 1]):
                 b = row_columns[q]
                 if b < nx:
-                    for j in range(n):
-                        xn[a, j] += AB[a, b, j] * x[b, j]
+                    for j in range(lanes):
+                        xn[a, j] += ABd[a, b, o + j] * x[b, j]
                 else:
-                    for j in range(n):
-                        xn[a, j] += AB[a, b, j] * v[b - nx, j]
+                    for j in range(lanes):
+                        xn[a, j] += ABd[a, b, o + j] * v[b - nx, j]
         for a in range(nx):
-            for j in range(n):
+            for j in range(lanes):
                 x[a, j] = xn[a, j]
-                zt[k + 1, a, j] = xn[a, j] * Di[a, j]
+                zt[k + 1, a, j] = xn[a, j] * D[a, o + j]
     for k in range(T):  # eta = M y + c
         for b in range(nlam):
-            for j in range(n):
+            for j in range(lanes):
                 zt[k, ny + b, j] = Mt[b, ny, j]
             for a in range(ny):
-                for j in range(n):
+                for j in range(lanes):
                     zt[k, ny + b, j] += Mt[b, a, j] * zt[k, a, j]
-    for j in range(n):
+    for j in range(lanes):
         for k in range(T):
             for a in range(ns):
                 z_steps[j, k, a] = zt[k, a, j]
@@ -222,12 +224,12 @@ def _solve_project_samples(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray
     finite.
     """
     n, T = delta.shape[0], delta.shape[1]
-    work = _Work(delta.dtype, T, Y.shape[3], Y.shape[2], Mc.shape[1])
+    work = _Work(delta.dtype, T, Y.shape[2], Y.shape[1], Mc.shape[1])
     for j in range(n):
-        _solve_sample(j, vectors, delta, w, Mc, consts, Y[index, :, :, :, j],
-                      L[index, :, :, :, j], Sd[index, :, :, j], D[index, :, j],
-                      ABd[index, :, :, j], column_start, column_rows, row_start, row_columns,
-                      zero, z_steps, z_terminal, work)
+        lane = index * n + j
+        _solve_sample(j, vectors, delta, w, Mc, consts, Y[:, :, :, lane], L[:, :, :, lane],
+                      Sd[:, :, lane], D[:, lane], ABd[:, :, lane], column_start, column_rows,
+                      row_start, row_columns, zero, z_steps, z_terminal, work)
     return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, Mc.shape[1], consts,
                                p, shared, box, zero)
 

@@ -61,7 +61,8 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     ``bases`` (N, ny, ny), ``two_rho_eta`` (N,) and ``consts`` (N, ny + 3) are the plan's
     constants of :func:`~c3bench.solvers.admm.compiled_kernels.factorize_batch` and
     :func:`~c3bench.solvers.admm.compiled_passes.solve_project`; ``Y`` ... ``failed`` the
-    group buffer (its first axis, ``m``, is the group size); ``ratios`` (N - 1, ns);
+    group buffer (:class:`~c3bench.solvers.admm.compiled_factors.CompiledFactors`, ``m n``
+    lanes: ``m`` is the group size); ``ratios`` (N - 1, ns);
     ``iterates`` (2, 3, n, T, ns): two sets of ``(delta, w, z_steps)``, set 0 holding the
     initial ``delta`` and ``w``; ``terminals`` (2, n, nx) the sets' ``z_terminal``.
 
@@ -70,8 +71,8 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     :data:`NON_FINITE` for iteration ``completed``.
     """
     N = bases.shape[0]
-    group = Y.shape[0]
     n, T, ns = iterates.shape[2], iterates.shape[3], iterates.shape[4]
+    group = failed.shape[0] // n
     current = 0
     for i in range(N):
         slot = i % group
@@ -81,7 +82,7 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                             jacobi, zero, one, column_start, column_rows, Y, L, Sd, D, ABd,
                             failed)
         for j in range(n):
-            if failed[slot, j] >= 0:
+            if failed[slot * n + j] >= 0:
                 return i, current, FACTORISATION_FAILED
         target = 1 - current
         if not solve_project(vectors, iterates[current, 0], iterates[current, 1], Mc, Mt,
