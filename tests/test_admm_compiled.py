@@ -126,7 +126,7 @@ def test_iterate_equals_riccati_step_and_projection(push: SimpleNamespace, n: in
 
 
 @pytest.mark.parametrize("precision", list(Precision))
-@pytest.mark.parametrize("n", [1, 3, 16])
+@pytest.mark.parametrize("n", [1, 3, 16, 40])
 def test_iterate_on_random_lcs_batches(n: int, precision: Precision) -> None:
     mpc, lcs, x0 = _random_problem(n, seed=10 + n)
     _check(mpc, lcs, x0, precision, shared=True, seed=n)
@@ -153,7 +153,7 @@ def _sparse_problem(n: int, seed: int) -> tuple[MPC, LCSBatch, np.ndarray]:
 
 
 @pytest.mark.parametrize("precision", list(Precision))
-@pytest.mark.parametrize("n", [1, 3, 16])
+@pytest.mark.parametrize("n", [1, 3, 16, 40])
 def test_iterate_on_lcs_batches_with_exact_zeros(n: int, precision: Precision) -> None:
     mpc, lcs, x0 = _sparse_problem(n, seed=30 + n)
     _check(mpc, lcs, x0, precision, shared=True, seed=n)
