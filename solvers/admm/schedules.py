@@ -71,12 +71,25 @@ class Geometric(Schedule):
         return self.factor
 
     def plan(self, rho0: Mapping[str, float], iterations: int) -> list[Rho] | None:
-        rho = {key: float(value) for key, value in rho0.items()}
-        out = []
-        for _ in range(iterations):
-            out.append(dict(rho))
-            rho = self.scale(rho, self.factor)
-        return out
+        """``rho0 factor^i`` on the scheduled blocks for ``i < iterations`` (memoised: a
+        controller asks for the same plan every control step; each call gets its own
+        dicts)."""
+        key = (self, tuple(rho0.items()), iterations)
+        plan = _PLANS.get(key)
+        if plan is None:
+            rho = {k: float(value) for k, value in rho0.items()}
+            plan = []
+            for _ in range(iterations):
+                plan.append(dict(rho))
+                rho = self.scale(rho, self.factor)
+            if len(_PLANS) > 64:
+                _PLANS.clear()
+            _PLANS[key] = plan
+        return [dict(rho) for rho in plan]
+
+
+_PLANS: dict[tuple[Any, ...], list[Rho]] = {}
+"""Memoised plans of :meth:`Geometric.plan`."""
 
 
 @dataclass(frozen=True)
