@@ -8,26 +8,32 @@ module docstrings of :mod:`solvers.fast`, :mod:`solvers.admm.compiled_kernels` a
 :mod:`solvers.admm.compiled_passes`), compiled
 with numba (Lam, Pitrou & Seibert, "Numba: a LLVM-based Python JIT compiler", LLVM-HPC 2015):
 
-* :meth:`CompiledC3PlusKernel.start` converts the LCS batch to the working precision into
-  preallocated arrays and takes a geometric schedule's plan (``planned_rhos``, known before
-  the first iteration);
-* the first iteration of each *group* of the plan (:func:`plan_group` rho values: at least
+* :meth:`CompiledC3PlusKernel.start` assembles the LCS batch in the working precision into
+  preallocated arrays (one compiled call, :func:`kernels.assemble`) and takes a geometric
+  schedule's plan (``planned_rhos``, known before the first iteration);
+* the first iteration of each *group* of the plan (:func:`plan_group` rho values: at most
   one block of lanes, rho x sample pairs) factorises the whole group for every sample in ONE
-  compiled call into a preallocated buffer (rho values x samples x T x ...), which stays in
-  the core's cache for the group's iterations;
+  compiled call, in place in a preallocated buffer (lanes last), which stays in the core's
+  cache for the group's iterations;
 * :meth:`CompiledC3PlusKernel.step` runs the gradient, both linear passes, ``eta``, the
   projection of ``v = z + w``, (shared inputs, ``n > 1``) ``delta_u = sum_j p_j v_{j,u}``
   and the loop's dual update (:func:`c3bench.solvers.admm.loop.dual_update`, compiled) in
   ONE compiled call (:meth:`~CompiledC3PlusKernel.iterate` is the same call without the
   dual); a rho outside the plan is factorised on the fly (one call) and kept in a small
-  cache keyed by the rho values.
+  cache keyed by the rho values;
+* :meth:`CompiledC3PlusKernel.run_plan` runs a whole plan (every group's factorisation, every
+  iteration and the loop's dual rescaling between them) in ONE compiled call
+  (:mod:`.compiled_plan`), which the loop uses for a geometric schedule with ``fixed``
+  stopping and nothing recorded per iteration.
 
-JIT compilation happens once per process (and is cached on disk); :func:`warm_up` compiles
-every signature (float64 and float32) on a tiny problem
-(:func:`c3bench.solvers.admm.compiled_solver.warm_up`). ``compile_seconds`` is the JIT
-time spent in this process so far (the first call of each kernel and precision), so that
-step timings can exclude it. Measured: about 14 s to compile everything from scratch (load
-average 5 on 2 cores), 0.2 s to load it from numba's disk cache.
+JIT compilation happens once per process (and is cached on disk);
+:func:`c3bench.solvers.admm.compiled_solver.warm_up` compiles every signature (float64 and
+float32) on a tiny problem. ``compile_seconds`` is the JIT time spent in this process so far
+(the first call of each kernel and precision), so that step timings can exclude it.
+Measured: 43-53 s to compile everything from scratch (load average below 1 on 2 cores), 0.3-0.4
+s to load it from numba's disk cache. numba checks a cached function against its own source
+file only: after editing one kernel module, clear ``__pycache__/*.nb[ic]`` so that the
+functions calling it from other modules are compiled again.
 
 Differences from :class:`solvers.fast.FastC3Plus`: ``Q_vv`` is factorised by Cholesky (a
 ``Q_vv`` that is not positive definite raises :class:`KernelFailure`; numpy's inverse would

@@ -6,9 +6,10 @@
 residuals, rho schedule (with the dual rescaling), stopping and output;
 :class:`.compiled.CompiledC3PlusKernel` does the QP step, the projection and the (compiled)
 dual update in one compiled call per iteration (:meth:`CompiledC3Plus.fused`, which the loop
-calls) and factorises a geometric schedule's rho values a group at a time, one compiled call
-per group. The
-box limits of ``mpc.limits`` (``options.use_limits``) go into its projection,
+calls) and factorises a geometric schedule's rho values a group at a time; with a geometric
+schedule, ``fixed`` stopping and nothing recorded, the loop hands it the whole plan instead
+(:meth:`CompiledC3Plus.run_plan`, one compiled call per control step). The box limits of
+``mpc.limits`` (``options.use_limits``) go into its projection,
 ``projection_weights`` (``U``) into the pairs' closed form.
 """
 
