@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from c3bench.problems import families
 from c3bench.problems.config import load_config
 from c3bench.problems.instance import Problem, load_instances
+from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.linearize import linearize
+from c3bench.problems.linearize_batch import BatchLinearizer
+from c3bench.problems.mpc import MPC
 from c3bench.problems.scene import build_mpc, build_scene
 from c3bench.problems.suites import generate_suite, sample_states, scripted_push
 from c3bench.solvers.modes import enumerate_modes
@@ -81,3 +86,33 @@ def _forget_plugins_loaded_by_the_test(monkeypatch: pytest.MonkeyPatch) -> None:
     from c3bench.solvers import registry
 
     monkeypatch.setattr(registry, "_PLUGINS_LOADED", dict(registry._PLUGINS_LOADED))
+
+
+def push_batches(position: int, sizes: tuple[int, ...]) -> SimpleNamespace:
+    """A contact-rich state of the scripted push (``position`` among 3 sampled states), the
+    MPC, and LCS batches of each size in ``sizes`` (cube sides spread over 0.27-0.33; one
+    sample: 0.29): ``mpc``, ``x0``, ``batches[n]``."""
+    config = load_config()
+    record = scripted_push(config)
+    mpc = build_mpc(build_scene(l=0.29, config=config), config.mpc)
+    index = sample_states(record, 3, 0.02)[position]
+    x0, u = record.states[index], record.inputs[index]
+    batches = {n: BatchLinearizer(list(np.linspace(0.27, 0.33, n)) if n > 1 else [0.29],
+                                  config).linearize(x0, u, config.mpc.dt) for n in sizes}
+    return SimpleNamespace(mpc=mpc, x0=x0, batches=batches)
+
+
+def random_lcs_problem(n: int, seed: int) -> tuple[MPC, LCSBatch, np.ndarray]:
+    """A random MPC (nx=4, nu=2, T=5) and ``n`` random LCS with nlam=3."""
+    rng = np.random.default_rng(seed)
+    nx, nu, nlam, T = 4, 2, 3, 5
+    Q = np.diag(rng.uniform(0.5, 2.0, nx))
+    mpc = MPC(Q=Q, R=np.diag(rng.uniform(0.1, 1.0, nu)), Q_f=3 * Q,
+              x_target=rng.normal(size=nx), horizon=T, dt=0.05, force_limit=10.0)
+    F = np.eye(nlam) + 0.1 * rng.normal(size=(n, nlam, nlam))
+    lcs = LCSBatch(A=np.eye(nx) + 0.1 * rng.normal(size=(n, nx, nx)),
+                   B=rng.normal(size=(n, nx, nu)), D=rng.normal(size=(n, nx, nlam)),
+                   d=0.1 * rng.normal(size=(n, nx)), E=rng.normal(size=(n, nlam, nx)),
+                   F=F @ np.swapaxes(F, 1, 2), H=rng.normal(size=(n, nlam, nu)),
+                   c=rng.normal(size=(n, nlam)), dt=0.05)
+    return mpc, lcs, rng.normal(size=nx)

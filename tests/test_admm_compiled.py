@@ -10,15 +10,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from conftest import push_batches, random_lcs_problem
 
-from c3bench.problems.config import load_config
 from c3bench.problems.errors import InputError
 from c3bench.problems.lcs import LCSBatch
-from c3bench.problems.linearize_batch import BatchLinearizer
 from c3bench.problems.mpc import MPC
 from c3bench.problems.names import Precision
-from c3bench.problems.scene import build_mpc, build_scene
-from c3bench.problems.suites import sample_states, scripted_push
 from c3bench.solvers.admm import compiled_kernels as kernels
 from c3bench.solvers.admm import compiled_passes as passes
 from c3bench.solvers.admm.compiled import CompiledC3PlusKernel, KernelFailure
@@ -42,30 +39,7 @@ def compiled() -> None:
 @pytest.fixture(scope="module")
 def push() -> SimpleNamespace:
     """Contact-rich states of the scripted push, batches of 1, 3 and 16 cube sides."""
-    config = load_config()
-    record = scripted_push(config)
-    mpc = build_mpc(build_scene(l=0.29, config=config), config.mpc)
-    index = sample_states(record, 3, 0.02)[1]
-    x0, u = record.states[index], record.inputs[index]
-    batches = {n: BatchLinearizer(list(np.linspace(0.27, 0.33, n)) if n > 1 else [0.29],
-                                  config).linearize(x0, u, config.mpc.dt) for n in (1, 3, 16)}
-    return SimpleNamespace(mpc=mpc, x0=x0, batches=batches)
-
-
-def _random_problem(n: int, seed: int) -> tuple[MPC, LCSBatch, np.ndarray]:
-    """A random MPC (nx=4, nu=2, T=5) and ``n`` random LCS with nlam=3."""
-    rng = np.random.default_rng(seed)
-    nx, nu, nlam, T = 4, 2, 3, 5
-    Q = np.diag(rng.uniform(0.5, 2.0, nx))
-    mpc = MPC(Q=Q, R=np.diag(rng.uniform(0.1, 1.0, nu)), Q_f=3 * Q,
-              x_target=rng.normal(size=nx), horizon=T, dt=0.05, force_limit=10.0)
-    F = np.eye(nlam) + 0.1 * rng.normal(size=(n, nlam, nlam))
-    lcs = LCSBatch(A=np.eye(nx) + 0.1 * rng.normal(size=(n, nx, nx)),
-                   B=rng.normal(size=(n, nx, nu)), D=rng.normal(size=(n, nx, nlam)),
-                   d=0.1 * rng.normal(size=(n, nx)), E=rng.normal(size=(n, nlam, nx)),
-                   F=F @ np.swapaxes(F, 1, 2), H=rng.normal(size=(n, nlam, nu)),
-                   c=rng.normal(size=(n, nlam)), dt=0.05)
-    return mpc, lcs, rng.normal(size=nx)
+    return push_batches(1, (1, 3, 16))
 
 
 def _reference(mpc: MPC, lcs: LCSBatch, x0: np.ndarray, rho: Mapping[str, float],
@@ -128,7 +102,7 @@ def test_iterate_equals_riccati_step_and_projection(push: SimpleNamespace, n: in
 @pytest.mark.parametrize("precision", list(Precision))
 @pytest.mark.parametrize("n", [1, 3, 16, 40])
 def test_iterate_on_random_lcs_batches(n: int, precision: Precision) -> None:
-    mpc, lcs, x0 = _random_problem(n, seed=10 + n)
+    mpc, lcs, x0 = random_lcs_problem(n, seed=10 + n)
     _check(mpc, lcs, x0, precision, shared=True, seed=n)
 
 
@@ -136,7 +110,7 @@ def _sparse_problem(n: int, seed: int) -> tuple[MPC, LCSBatch, np.ndarray]:
     """:func:`_random_problem` with exact zeros in ``A``, ``B``, ``D`` and ``d``: some shared by
     every sample (a zero column of ``B``, a zero row of ``D``), some in one sample only (so the
     kernel's structure must be the union over the batch)."""
-    mpc, lcs, x0 = _random_problem(n, seed)
+    mpc, lcs, x0 = random_lcs_problem(n, seed)
     rng = np.random.default_rng(seed + 1)
     A, B, D, d = (np.array(a) for a in (lcs.A, lcs.B, lcs.D, lcs.d))
     A[:, 0, 1:] = 0.0
@@ -163,7 +137,7 @@ def test_structure_is_the_union_over_samples_and_follows_the_batch() -> None:
     """The skipped entries are the zeros of every sample; a later batch with more nonzeros
     (same shapes) is not solved with the earlier, sparser structure."""
     mpc, sparse, x0 = _sparse_problem(3, seed=40)
-    dense = _random_problem(3, seed=40)[1]
+    dense = random_lcs_problem(3, seed=40)[1]
     kernel = CompiledC3PlusKernel(mpc)
     plan = FastC3Plus(mpc).planned_rhos()
     assert plan is not None

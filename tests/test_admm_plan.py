@@ -11,14 +11,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from conftest import push_batches, random_lcs_problem
 
-from c3bench.problems.config import load_config
 from c3bench.problems.lcs import LCSBatch
-from c3bench.problems.linearize_batch import BatchLinearizer
 from c3bench.problems.mpc import MPC
 from c3bench.problems.names import Precision
-from c3bench.problems.scene import build_mpc, build_scene
-from c3bench.problems.suites import sample_states, scripted_push
 from c3bench.solvers.admm.compiled_factors import plan_group
 from c3bench.solvers.admm.compiled_solver import CompiledC3Plus, warm_up
 from c3bench.solvers.admm.loop import plan_ratios, rescale_dual
@@ -33,14 +30,7 @@ def compiled() -> None:
 
 @pytest.fixture(scope="module")
 def push() -> SimpleNamespace:
-    config = load_config()
-    record = scripted_push(config)
-    mpc = build_mpc(build_scene(l=0.29, config=config), config.mpc)
-    index = sample_states(record, 3, 0.02)[2]
-    x0, u = record.states[index], record.inputs[index]
-    batches = {n: BatchLinearizer(list(np.linspace(0.27, 0.33, n)) if n > 1 else [0.29],
-                                  config).linearize(x0, u, config.mpc.dt) for n in (1, 5, 16)}
-    return SimpleNamespace(mpc=mpc, x0=x0, batches=batches)
+    return push_batches(2, (1, 5, 16))
 
 
 def _solve(mpc: MPC, lcs: LCSBatch, x0: np.ndarray, options: C3Options, precision: Precision,
@@ -91,20 +81,9 @@ def test_planned_run_is_the_loop(push: SimpleNamespace, n: int, shared: bool,
 
 @pytest.mark.parametrize("rescale", [True, False])
 def test_planned_run_on_a_random_batch(rescale: bool) -> None:
-    rng = np.random.default_rng(7)
-    n, nx, nu, nlam, T = 7, 4, 2, 3, 5
-    Q = np.diag(rng.uniform(0.5, 2.0, nx))
-    mpc = MPC(Q=Q, R=np.diag(rng.uniform(0.1, 1.0, nu)), Q_f=3 * Q,
-              x_target=rng.normal(size=nx), horizon=T, dt=0.05, force_limit=10.0)
-    F = np.eye(nlam) + 0.1 * rng.normal(size=(n, nlam, nlam))
-    lcs = LCSBatch(A=np.eye(nx) + 0.1 * rng.normal(size=(n, nx, nx)),
-                   B=rng.normal(size=(n, nx, nu)), D=rng.normal(size=(n, nx, nlam)),
-                   d=0.1 * rng.normal(size=(n, nx)), E=rng.normal(size=(n, nlam, nx)),
-                   F=F @ np.swapaxes(F, 1, 2), H=rng.normal(size=(n, nlam, nu)),
-                   c=rng.normal(size=(n, nlam)), dt=0.05)
+    mpc, lcs, x0 = random_lcs_problem(7, seed=7)
     options = C3Options(keep_iterates=False, admm_iterations=7, rescale_dual=rescale,
                         rho_blocks=("x", "lam", "u", "eta"), rho_factor=1.7)
-    x0 = rng.normal(size=nx)
     planned = _solve(mpc, lcs, x0, options, Precision.FLOAT64, True, True, 1)
     looped = _solve(mpc, lcs, x0, options, Precision.FLOAT64, False, True, 1)
     assert planned.ok
