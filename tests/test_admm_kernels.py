@@ -106,11 +106,12 @@ def test_reference_kernel_matches_the_batched_one(states: list[tuple[np.ndarray,
 
 
 def test_one_definition_of_the_iteration_schedules_and_closed_form() -> None:
-    """The ADMM iteration, the dual update, each rho schedule and the C3+ closed form are
-    defined once in the package sources."""
+    """The ADMM iteration, the dual update, the dual rescaling, each rho schedule and the C3+
+    closed form are defined once in the package sources (the compiled plan run calls them)."""
     sources = {path: path.read_text() for folder in ("solvers", "bench", "problems")
                for path in (ROOT / folder).rglob("*.py")}
     patterns = {"iteration": r"\ndef admm_iteration\(", "dual update": r"\ndef dual_update\(",
+                "dual rescaling": r"\ndef scale_dual\(", "plan ratios": r"\ndef plan_ratios\(",
                 "geometric": r"\nclass Geometric\(", "adaptive": r"\nclass Adaptive\(",
                 "balancing": r"\nclass ResidualBalancing\(",
                 "closed form": r"sqrt_w_lam \* a_plus >= sqrt_w_eta \* b_plus"}
