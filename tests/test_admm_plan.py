@@ -79,14 +79,20 @@ def test_planned_run_is_the_loop(push: SimpleNamespace, n: int, shared: bool,
     _assert_same(planned, looped)
 
 
-@pytest.mark.parametrize("rescale", [True, False])
-def test_planned_run_on_a_random_batch(rescale: bool) -> None:
+@pytest.mark.parametrize(("rescale", "iterations", "U"), [
+    (True, 7, None), (False, 7, None), (True, 1, None),
+    (True, 5, {"x": 1000.0, "lam": 1.0, "u": 0.0, "eta": 1.0})])
+def test_planned_run_on_a_random_batch(rescale: bool, iterations: int,
+                                       U: dict[str, float] | None) -> None:
+    """All blocks scheduled, with and without rescaling, a one-iteration plan (no rescaling
+    at all) and a separate projection weight ``U``."""
     mpc, lcs, x0 = random_lcs_problem(7, seed=7)
-    options = C3Options(keep_iterates=False, admm_iterations=7, rescale_dual=rescale,
-                        rho_blocks=("x", "lam", "u", "eta"), rho_factor=1.7)
+    options = C3Options(keep_iterates=False, admm_iterations=iterations, rescale_dual=rescale,
+                        rho_blocks=("x", "lam", "u", "eta"), rho_factor=1.7,
+                        projection_weights=U)
     planned = _solve(mpc, lcs, x0, options, Precision.FLOAT64, True, True, 1)
     looped = _solve(mpc, lcs, x0, options, Precision.FLOAT64, False, True, 1)
-    assert planned.ok
+    assert planned.ok and planned.iterations == iterations
     _assert_same(planned, looped)
 
 
