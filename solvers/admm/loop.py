@@ -101,18 +101,22 @@ def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
                      delta: np.ndarray | None, w: np.ndarray | None, dtype: Any = np.float64
                      ) -> tuple[np.ndarray, np.ndarray]:
     """The given iterates ((S, T, ns) or (T, ns), checked) or a cold start."""
-    start = x0 if np.all(np.isfinite(x0)) else np.zeros(layout.nx)
-    cold = cold_iterates(layout, start, samples, dtype)
+    shape = (samples, layout.horizon, layout.step_size)
+    cold: tuple[np.ndarray, np.ndarray] | None = None
+    if delta is None or w is None:  # a warm start (both given) builds no cold arrays
+        start = x0 if np.all(np.isfinite(x0)) else np.zeros(layout.nx)
+        cold = cold_iterates(layout, start, samples, dtype)
     out = []
-    for name, given, default in (("delta", delta, cold[0]), ("w", w, cold[1])):
+    for index, (name, given) in enumerate((("delta", delta), ("w", w))):
         if given is None:
-            out.append(default)
+            assert cold is not None
+            out.append(cold[index])
             continue
         array = np.asarray(given)
-        if array.shape == default.shape[1:]:
-            array = np.broadcast_to(array, default.shape)
-        if array.shape != default.shape:
-            raise ValueError(f"{name} must have shape {default.shape[1:]} or {default.shape}, "
+        if array.shape == shape[1:]:
+            array = np.broadcast_to(array, shape)
+        if array.shape != shape:
+            raise ValueError(f"{name} must have shape {shape[1:]} or {shape}, "
                              f"got {array.shape}")
         if not np.all(np.isfinite(array)):
             raise ValueError(f"{name} has non-finite entries")
