@@ -144,3 +144,24 @@ def test_options_and_devices_are_checked(setup: SimpleNamespace) -> None:
     if not gpu_available():
         with pytest.raises(JaxUnavailable, match="no GPU visible"):
             JaxC3Plus(setup.mpc, device="gpu")
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_planned_run_is_the_iteration_by_iteration_loop(setup: SimpleNamespace,
+                                                        precision: str) -> None:
+    """A geometric plan as one ``lax.scan`` device call (``run_plan``) gives the control step
+    of one device call per iteration: same iterations, rho and status, iterates to rounding
+    (XLA may fuse the scan's body differently)."""
+    weights = [0.4, 0.3, 0.2, 0.1]
+    planned = JaxC3Plus(setup.mpc, precision=precision)
+    looped = JaxC3Plus(setup.mpc, precision=precision)
+    looped.run_plan = None  # type: ignore[assignment, method-assign]
+    a = planned.solve(setup.batch, setup.x0, weights=weights)
+    b = looped.solve(setup.batch, setup.x0, weights=weights)
+    assert a.ok and b.ok and a.status == b.status and a.iterations == b.iterations
+    assert a.rho == b.rho
+    tolerance = 1e-12 if precision == "float64" else 1e-5
+    for ours, theirs in ((a.delta, b.delta), (a.w, b.w), (a.z_steps, b.z_steps),
+                         (a.z_terminal, b.z_terminal), (a.u, b.u)):
+        assert ours.dtype == theirs.dtype
+        assert _relative(ours, theirs) <= tolerance
