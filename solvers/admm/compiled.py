@@ -71,6 +71,10 @@ __all__ = ["CompiledC3PlusKernel", "CompiledFactors", "KernelFailure", "rho_key"
 
 OFF_PLAN_CACHE = 4
 """How many off-plan factorisations :class:`CompiledC3PlusKernel` keeps (by rho values)."""
+STRUCTURE_CACHE = 16
+"""How many structures of ``[A B_v d]`` (:func:`kernels.structure`, about 0.2 ms to build
+with its flop counts) :class:`CompiledC3PlusKernel` keeps, by mask: along a push the
+contacts switch a few entries on and off, so the same masks come back."""
 
 
 class _Entry(NamedTuple):
@@ -147,7 +151,10 @@ class CompiledC3PlusKernel:
         self._sets: tuple[np.ndarray, np.ndarray] | None = None
         """The two iterate sets of :meth:`run_plan` (``iterates``, ``terminals``)."""
         self._p = np.ones(1, self.dtype)
-        self._structure_mask: np.ndarray | None = None
+        self._structure_key: tuple[Any, ...] | None = None
+        self._structures: OrderedDict[tuple[Any, ...], tuple[kernels.Structure, int, int]] = \
+            OrderedDict()
+        """Recent structures with their flop counts, by mask (:data:`STRUCTURE_CACHE`)."""
         self._structure: kernels.Structure | None = None
         """Structural nonzeros of the batch's ``[A B_v d]`` (:class:`kernels.Structure`), set
         by :meth:`start`."""
@@ -329,13 +336,22 @@ class CompiledC3PlusKernel:
         mask = np.empty((nx, ny + 1), dtype=np.bool_)
         self._timed(kernels.assemble, lcs.A, lcs.B, lcs.D, lcs.d, lcs.E, lcs.F, lcs.H, lcs.c,
                     self._zero, a["A"], a["Bv"], a["d"], a["Mc"], a["Mt"], a["MtM"], mask)
-        if self._structure_mask is None or not np.array_equal(mask, self._structure_mask):
-            self._structure_mask = mask
-            self._structure = pattern = kernels.structure(mask)
-            T = self.mpc.horizon
-            self._lane_flops = T * kernels.factor_flops(nx, nv, pattern) + \
-                kernels.setup_flops(nx, nv)
-            self._sample_flops = T * passes.solve_flops(nx, nv, nlam, pattern)
+        key = (mask.shape, mask.tobytes(), self.mpc.horizon)
+        if key != self._structure_key:  # contacts switch entries on and off: keep a few
+            known = self._structures.get(key)
+            if known is None:
+                T = self.mpc.horizon
+                pattern = kernels.structure(mask)
+                known = (pattern, T * kernels.factor_flops(nx, nv, pattern)
+                         + kernels.setup_flops(nx, nv),
+                         T * passes.solve_flops(nx, nv, nlam, pattern))
+                self._structures[key] = known
+                while len(self._structures) > STRUCTURE_CACHE:
+                    self._structures.popitem(last=False)
+            else:
+                self._structures.move_to_end(key)
+            self._structure_key = key
+            self._structure, self._lane_flops, self._sample_flops = known
 
     def _allocate(self, m: int) -> CompiledFactors:
         n, nx, nlam, nu = self._shape
