@@ -142,3 +142,26 @@ def test_plan_ratios_are_the_loops_rescaling(push: SimpleNamespace) -> None:
     assert not np.all(ratios[1] == 1.0)
     np.testing.assert_array_equal(plan_ratios(layout, plan, False, np.float32), 1.0)
     assert plan_ratios(layout, plan, False, np.float32).dtype == np.float32
+
+
+def test_new_limits_reach_the_projection(push: SimpleNamespace) -> None:
+    """The solver sets its projection's box again when ``mpc.limits`` is replaced (it skips
+    the work while the sizes, ``use_limits`` and the limits object stay the same)."""
+    from c3bench.problems.limits import Limits
+
+    mpc, lcs = push.mpc, push.batches[5]
+    original = mpc.limits
+    solver = CompiledC3Plus(mpc, C3Options(keep_iterates=False))
+    free = solver.solve(lcs, push.x0)
+    bound = 0.25 * float(np.max(np.abs(free.u_raw)))
+    assert bound > 0
+    inf = np.full(mpc.nx, np.inf)
+    mpc.limits = Limits(np.full(mpc.nu, -bound), np.full(mpc.nu, bound), -inf, inf)
+    try:
+        tight = solver.solve(lcs, push.x0)
+        assert np.max(np.abs(tight.u_raw)) <= bound + 1e-12
+        assert np.max(np.abs(tight.delta[:, :, solver.layout.index(0, "u")])) <= bound + 1e-12
+        mpc.limits = original
+        np.testing.assert_array_equal(solver.solve(lcs, push.x0).u_raw, free.u_raw)
+    finally:
+        mpc.limits = original
