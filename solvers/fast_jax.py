@@ -12,10 +12,7 @@ between iterations; the loop's dual update is one more device operation. With a 
 schedule, ``fixed`` stopping and nothing recorded per iteration, the loop hands the kernel
 the whole plan (:meth:`JaxC3Plus.run_plan`): the iterations and the loop's dual rescaling
 run as one ``lax.scan``, ONE device call per control step instead of one per iteration
-(measured on one CPU core, alternating the two: 2.9 -> 1.9 ms per control step at one
-sample, 5.4 -> 4.1 ms at 16; inside ``c3bench perf``, between the reference controllers'
-long steps, the two are within noise, 3.1 against 3.4 ms and 6.7 against 6.5 ms of ADMM, the
-CPU's compute dominating; on a GPU, where each call costs a launch, it should matter more).
+(meant for GPUs, where each call costs a launch; CPU timings in ``docs/admm.md``).
 
 Differences from the numpy path (same mathematics, different arrangement):
 
@@ -228,6 +225,7 @@ class JaxC3Plus:
         self.timings = FastTimings()
         self.info: dict[str, Any] = {}
         self._constants: dict[int, tuple[np.ndarray, Any]] = {}
+        self._plans: dict[tuple[Any, ...], tuple[np.ndarray, tuple[Any, Any, Any]]] = {}
 
     name = "jax"
 
@@ -426,16 +424,32 @@ class JaxC3Plus:
         :meth:`fused`, non-finite values are found by :meth:`solve` after the last
         iteration."""
         t0 = time.perf_counter()
-        pairs = [self._rho_arrays(rho) for rho in plan]
-        rhos = np.stack([rho_vec for rho_vec, _ in pairs])
-        sqrt_us = np.stack([sqrt_u for _, sqrt_u in pairs])
-        padded = np.ones((len(plan), self.layout.step_size), dtype=self.dtype)
-        padded[:len(plan) - 1] = ratios  # no rescaling after the last iteration
+        rhos, sqrt_us, padded = self._plan_inputs(plan, ratios)
         x0, lower, upper = self._step_arrays
         z, terminal, delta, w = self._plan_step(*self._lcs_arrays, x0, rhos, sqrt_us, padded,
                                                 lower, upper, self._p, delta, w)
         self.timings.qp_solve += time.perf_counter() - t0
         return PlanRun(len(plan), delta, w, z, terminal)
+
+    def _plan_inputs(self, plan: Sequence[Mapping[str, float]], ratios: np.ndarray
+                     ) -> tuple[Any, Any, Any]:
+        """The plan's stacked :meth:`_rho_arrays` and ``ratios`` with a ones row appended (no
+        rescaling after the last iteration), on the device; memoised by the layout, the
+        plan's items and the (memoised) ratio array, since a controller repeats them every
+        control step (about 0.16 ms of numpy to rebuild)."""
+        key = (self.layout, tuple(tuple(rho.items()) for rho in plan))
+        cached = self._plans.get(key)
+        if cached is None or cached[0] is not ratios:
+            pairs = [self._rho_arrays(rho) for rho in plan]
+            padded = np.ones((len(plan), self.layout.step_size), dtype=self.dtype)
+            padded[:len(plan) - 1] = ratios
+            arrays = tuple(self.jax.device_put(a, self.device) for a in (
+                np.stack([rho_vec for rho_vec, _ in pairs]),
+                np.stack([sqrt_u for _, sqrt_u in pairs]), padded))
+            if len(self._plans) > 16:
+                self._plans.clear()
+            cached = self._plans[key] = (ratios, arrays)
+        return cached[1]
 
     def _rho_arrays(self, rho: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """``(rho_x, rho_lam, rho_u, rho_eta)`` (float64) and ``(sqrt U_lam, sqrt U_eta)`` in

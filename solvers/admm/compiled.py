@@ -67,7 +67,7 @@ from c3bench.solvers.admm.compiled_factors import (
 from c3bench.solvers.admm.kernel import KernelFailure, PlanRun
 from c3bench.solvers.fast import RiccatiOptions
 
-__all__ = ["CompiledC3PlusKernel", "CompiledFactors", "KernelFailure", "rho_key"]
+__all__ = ["CompiledC3PlusKernel", "KernelFailure"]
 
 OFF_PLAN_CACHE = 4
 """How many off-plan factorisations :class:`CompiledC3PlusKernel` keeps (by rho values)."""
@@ -136,9 +136,8 @@ class CompiledC3PlusKernel:
         self._arrays: dict[str, np.ndarray] = {}
         self._planned: CompiledFactors | None = None
         """Buffer of one group of the plan (:func:`plan_group` rho values)."""
-        self._plan: list[Mapping[str, float]] = []
+        self._plan: Sequence[Mapping[str, float]] = ()
         self._plan_index: dict[tuple[float, ...], int] = {}
-        self._plan_given: Sequence[Mapping[str, float]] | None = None
         self._plan_keys: list[tuple[float, ...]] = []
         self._entries: dict[tuple[float, ...], _Entry] = {}
         """The rho values whose factors are in the group buffer now."""
@@ -201,8 +200,7 @@ class CompiledC3PlusKernel:
         self._vectors[0] = x0
         self._p = p.astype(self.dtype)
         self._shared = bool(shared_inputs)
-        self._plan = list(planned_rhos or ())
-        self._plan_given = planned_rhos
+        self._plan = planned_rhos or ()  # as given: run_plan knows it by identity
         self._plan_keys = [rho_key(rho) for rho in self._plan]
         self._plan_index = {}
         for i in range(len(self._plan) - 1, -1, -1):  # a repeated rho: its first place
@@ -264,7 +262,7 @@ class CompiledC3PlusKernel:
         arrays. A failed iteration ends the run with the last completed one's iterates and
         the :class:`KernelFailure` :meth:`step` would raise."""
         pattern = self.structure  # raises before start()
-        if self._planned is None or (plan is not self._plan_given and
+        if self._planned is None or (plan is not self._plan and
                                      [rho_key(rho) for rho in plan] != self._plan_keys):
             raise InputError("run_plan needs the plan given to start()")
         delta, w = self._checked(delta), self._checked(w)
@@ -279,11 +277,11 @@ class CompiledC3PlusKernel:
             pattern.column_start, pattern.column_rows, pattern.row_start, pattern.row_columns,
             f.Y, f.L, f.Sd, f.D, f.ABd, f.failed, self._vectors, a["Mc"], a["Mt"], consts,
             self._p, self._shared, self._box, ratios, iterates, terminals)
-        reached = min(completed + (code != 0), len(plan))
-        group = f.shape[0]
-        self.flops += min(-(-reached // group) * group, len(plan)) * len(self._p) * \
-            self._lane_flops + (completed + (code == compiled_plan.NON_FINITE)) * \
-            len(self._p) * self._sample_flops
+        group, n = f.shape[0], len(self._p)
+        attempted = min(completed + (code != 0), len(plan))  # the failed one included
+        factorised = min(-(-attempted // group) * group, len(plan))  # whole groups
+        solved = completed + (code == compiled_plan.NON_FINITE)
+        self.flops += n * (factorised * self._lane_flops + solved * self._sample_flops)
         failure = None
         if code == compiled_plan.FACTORISATION_FAILED:
             failure = KernelFailure("QP factorisation failed",

@@ -71,7 +71,8 @@ class CompiledC3Plus:
         self.layout = HorizonLayout(mpc.nx, 0, mpc.nu, 0, mpc.horizon)
         self._lcs: LCSBatch | None = None
         self._box_key: tuple[Any, ...] | None = None
-        self._box_limits: Any = None
+        """Sizes, ``use_limits`` and the limits object (held, compared by identity) of the
+        box last given to the kernel."""
 
     @property
     def dtype(self) -> Any:
@@ -96,11 +97,11 @@ class CompiledC3Plus:
     def start(self, inputs: StepInputs) -> None:
         """Box, state, weights and the plan (converting the LCS counts as ``factor``)."""
         assert self._lcs is not None
-        limits = getattr(self.mpc, "limits", None)
-        key = (self.layout.nx, self.layout.nu, self.options.use_limits)
-        if key != self._box_key or limits is not self._box_limits:  # sizes, limits object
+        key = (self.layout.nx, self.layout.nu, self.options.use_limits,
+               getattr(self.mpc, "limits", None))  # Limits compare by identity (eq=False)
+        if key != self._box_key:
             self.kernel.set_box(box_of_step(self.mpc, self.layout, self.options.use_limits))
-            self._box_key, self._box_limits = key, limits  # held: its id is not reused
+            self._box_key = key
         t0 = time.perf_counter()
         self.kernel.start(self._lcs, inputs.x0, inputs.weights, inputs.shared_inputs,
                           inputs.plan)

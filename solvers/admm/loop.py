@@ -268,7 +268,7 @@ def run_admm(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any,
     started = time.perf_counter()
     loop = _Loop(kernel, options, inputs.weights, record_residuals)
     kernel.timings = FastTimings()
-    state = _State(delta, w, dict(options.rho0))
+    state = _State(delta, w, dict(options.rho0), status=f"{options.admm_iterations} iterations")
     inputs.plan = plan = loop.schedule.plan(state.rho, options.admm_iterations)
     try:
         kernel.start(inputs)
@@ -318,7 +318,6 @@ def _run_iterations(kernel: Kernel, options: C3Options, loop: _Loop,
     with residuals, trace, stopping and the rho update (module docstring)."""
     rho, delta, w = state.rho, state.delta, state.w
     previous: float | None = None
-    state.status = f"{options.admm_iterations} iterations"
     step = getattr(kernel, "fused", None) or admm_iteration
     constant = getattr(kernel, "constant", None)
     for i in range(options.admm_iterations):
@@ -369,7 +368,6 @@ def _run_planned(kernel: Any, options: C3Options, loop: _Loop,
     ratios = plan_ratios(kernel.layout, plan, options.rescale_dual, kernel.dtype)
     started = time.perf_counter()
     run: PlanRun = kernel.run_plan(plan, ratios, state.delta, state.w)
-    state.status = f"{options.admm_iterations} iterations"
     state.completed = run.completed
     state.delta, state.w, state.z_steps, state.z_terminal = run.delta, run.w, run.z_steps, \
         run.z_terminal
