@@ -371,18 +371,12 @@ def _project(z: np.ndarray, w: np.ndarray, out: np.ndarray, nx: int, nlam: int,
                 out[j, k, a] = z[j, k, a] + w[j, k, a]
             for a in range(nx):
                 out[j, k, a] = min(max(out[j, k, a], box[0, a]), box[1, a])
-    pairs = np.empty((2, n * T * nlam), z.dtype)  # contiguous: numba's np.where is several
-    for j in range(n):  # times faster on 1-d arrays than on strided 3-d slices
-        for k in range(T):
-            for b in range(nlam):
-                pairs[0, (j * T + k) * nlam + b] = out[j, k, nx + b]
-                pairs[1, (j * T + k) * nlam + b] = out[j, k, ns - nlam + b]
-    lam, eta = _c3plus_pairs(pairs[0], pairs[1], sqrt_lam, sqrt_eta)
-    for j in range(n):
-        for k in range(T):
-            for b in range(nlam):
-                out[j, k, nx + b] = lam[(j * T + k) * nlam + b]
-                out[j, k, ns - nlam + b] = eta[(j * T + k) * nlam + b]
+    size = n * T * nlam  # contiguous copies: numba's np.where is several times faster on
+    lam_v = np.ascontiguousarray(out[:, :, nx:nx + nlam]).reshape(size)  # 1-d arrays than
+    eta_v = np.ascontiguousarray(out[:, :, ns - nlam:]).reshape(size)  # on strided slices
+    lam, eta = _c3plus_pairs(lam_v, eta_v, sqrt_lam, sqrt_eta)
+    out[:, :, nx:nx + nlam] = lam.reshape((n, T, nlam))
+    out[:, :, ns - nlam:] = eta.reshape((n, T, nlam))
     for k in range(T):
         for a in range(nx + nlam, nx + nlam + nu):
             lower, upper = box[0, a - nlam], box[1, a - nlam]
