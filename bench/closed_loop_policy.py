@@ -274,11 +274,13 @@ def make_policy(spec: ControllerSpec, config: Config,
         from c3bench.solvers.fast import FastC3PlusController, fast_options
         from c3bench.solvers.lcp_batch import warm_up
 
-        linearizer = BatchLinearizer(sides, config, contact_model=spec.lcs_contact_model)
+        linearizer = BatchLinearizer(sides, config, contact_model=spec.lcs_contact_model,
+                                     kernel="compiled")
         fast = FastC3PlusController(CompiledC3Plus(mpc, fast_options(
             rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
             warm_dual=spec.warm_dual)))
         warm_up()  # the compiled Lemke of the weighting: loaded once, outside the steps
+        linearizer.warm_up()  # the compiled LCS build, likewise
 
         def models_at(x: np.ndarray, u: np.ndarray) -> Any:
             return linearizer.linearize(x, u, dt)

@@ -153,13 +153,16 @@ def _options(context: PerfContext) -> Any:
 
 
 def batched_step(context: PerfContext, config: Configuration, controller: Any,
-                 whole_call: bool = False) -> Step:
+                 whole_call: bool = False, lcs_kernel: str = "numpy") -> Step:
     """A step of a batched controller (``step(lcs_batch, x0, weights)`` returning ``.u``,
     ``.ok``, ``.iterations``, ``.timings``) with :class:`problems.linearize_batch.
-    BatchLinearizer`; ``whole_call``: one compiled call, ``qp`` is its whole time."""
+    BatchLinearizer` (its per-sample part by ``lcs_kernel``, :class:`problems.
+    linearize_batch.LcsKernel`); ``whole_call``: one compiled call, ``qp`` is its whole
+    time."""
     from c3bench.problems.linearize_batch import BatchLinearizer
 
-    linearizer = BatchLinearizer(sample_sides(config.samples, context.seed), context.config)
+    linearizer = BatchLinearizer(sample_sides(config.samples, context.seed), context.config,
+                                 kernel=lcs_kernel)
     dt = context.config.mpc.dt
 
     def step(index: int, x: np.ndarray, u_prev: np.ndarray) -> StepParts:
@@ -196,9 +199,10 @@ def make_riccati(context: PerfContext, config: Configuration) -> PreparedBackend
 
 def make_compiled(context: PerfContext, config: Configuration) -> PreparedBackend:
     """``c3plus-compiled``: :class:`solvers.admm.compiled_solver.CompiledC3Plus` (numba
-    kernel, the one ADMM loop); unavailable (with the import's reason) when it does not
-    import. Its JIT compilation happens in the warm-up steps; ``compile_seconds`` is read
-    after them."""
+    kernel, the one ADMM loop) with the compiled LCS build (:class:`problems.linearize_batch.
+    LcsKernel` ``COMPILED``; the other batched backends build it with numpy); unavailable
+    (with the import's reason) when it does not import. Its JIT compilation happens in the
+    warm-up steps; ``compile_seconds`` is read after them."""
     try:
         from c3bench.solvers.admm.compiled_solver import CompiledC3Plus
         from c3bench.solvers.fast import FastC3PlusController
@@ -213,7 +217,8 @@ def make_compiled(context: PerfContext, config: Configuration) -> PreparedBacken
     def executed_flops() -> float:
         return solver.executed_flops
 
-    return PreparedBackend(batched_step(context, config, FastC3PlusController(solver)),
+    return PreparedBackend(batched_step(context, config, FastC3PlusController(solver),
+                                        lcs_kernel="compiled"),
                            compile_seconds=compile_seconds, executed_flops=executed_flops)
 
 

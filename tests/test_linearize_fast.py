@@ -81,3 +81,56 @@ def test_batch_linearizer_equals_reference_with_and_without_ball_table() -> None
                     ours, theirs = getattr(batch, name)[j], getattr(reference, name)
                     scale = max(1.0, float(np.max(np.abs(theirs))))
                     assert np.max(np.abs(ours - theirs)) <= 1e-9 * scale, name
+
+
+def _assert_same_lcs(ours: object, theirs: object, tolerance: float) -> None:
+    for name in (*LCS_MATRICES, "phi"):
+        mine, reference = getattr(ours, name), getattr(theirs, name)
+        assert mine.shape == reference.shape, name
+        scale = max(1.0, float(np.max(np.abs(reference))))
+        assert np.max(np.abs(mine - reference)) <= tolerance * scale, name
+
+
+@pytest.mark.parametrize("ball_table", [True, False])
+@pytest.mark.parametrize("samples", [1, 16])
+def test_compiled_lcs_build_equals_numpy_build(samples: int, ball_table: bool) -> None:
+    """The compiled per-sample part (one numba call) gives the numpy build's LCS to rounding
+    along the scripted push, with random velocities and inputs."""
+    sides = np.random.default_rng(samples).uniform(0.27, 0.33, samples)
+    numpy_build = BatchLinearizer(sides, CONFIG, ball_table=ball_table)
+    compiled = BatchLinearizer(sides, CONFIG, ball_table=ball_table, kernel="compiled")
+    for x, u in random_states("planar", 5, 4):
+        _assert_same_lcs(compiled.linearize(x, u, DT), numpy_build.linearize(x, u, DT), 1e-12)
+
+
+def test_compiled_lcs_build_ball_inside_some_cubes() -> None:
+    """A ball centre inside the larger cubes and outside the smaller ones: the nearest-face
+    branch (negative gap, flipped normal) agrees with the numpy build sample by sample."""
+    sides = np.array([0.27, 0.28, 0.29, 0.31, 0.33])
+    scene = build_scene(config=CONFIG)
+    x = home_state(scene)
+    numpy_build = BatchLinearizer(sides, CONFIG)
+    compiled = BatchLinearizer(sides, CONFIG, kernel="compiled")
+    # ball centre 0.142 m beside the cube's axis (nearest face: a side), then 0.142 m above
+    # its centre (nearest face: the top)
+    for ball in ((-0.142, 0.16), (-0.02, 0.15 + 0.142)):
+        x[3], x[4] = ball
+        reference = numpy_build.linearize(x, np.zeros(2), DT)
+        centre_gap = reference.phi[:, -1] + numpy_build.ball_radius  # < 0: centre inside
+        assert np.any(centre_gap < 0) and np.any(centre_gap > 0)
+        _assert_same_lcs(compiled.linearize(x, np.zeros(2), DT), reference, 1e-12)
+
+
+def test_compiled_lcs_build_keeps_stewart_trinkle_on_numpy() -> None:
+    sides = [0.28, 0.32]
+    x, u = random_states("planar", 1, 5)[0]
+    compiled = BatchLinearizer(sides, CONFIG, contact_model="stewart_trinkle",
+                               kernel="compiled").linearize(x, u, DT)
+    reference = BatchLinearizer(sides, CONFIG, contact_model="stewart_trinkle").linearize(
+        x, u, DT)
+    _assert_same_lcs(compiled, reference, 0.0)
+
+
+def test_batch_linearizer_rejects_unknown_kernel() -> None:
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        BatchLinearizer([0.3], CONFIG, kernel="fortran")
