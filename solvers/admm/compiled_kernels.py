@@ -308,20 +308,23 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any,
     ``Q_vv`` is not positive definite gets ``k`` in ``fb`` (first failure only) and
     continues on a unit pivot."""
     ny = nx + nv
-    for a in range(nx):  # SAB = S [A B_v], Sd = S d
-        for b in range(ny + 1):
+    for b in range(ny):  # SAB = S [A B_v]: column b = sum over its rows c of S[:, c] ABd[c, b]
+        for a in range(nx):
             for l in range(nl):
-                sv[l] = zero
-            for q in range(column_start[b], column_start[b + 1]):
-                c = column_rows[q]
+                SAB[a, b, l] = zero
+        for q in range(column_start[b], column_start[b + 1]):
+            c = column_rows[q]
+            for a in range(nx):  # S[a, c] = S[c, a]; outputs a independent (no chain)
                 for l in range(nl):
-                    sv[l] += S[a, c, l] * ABb[c, b, l]
-            if b < ny:
-                for l in range(nl):
-                    SAB[a, b, l] = sv[l]
-            else:
-                for l in range(nl):
-                    Sd[a, l] = sv[l]
+                    SAB[a, b, l] += S[a, c, l] * ABb[c, b, l]
+    for a in range(nx):  # Sd = S d, the same way
+        for l in range(nl):
+            Sd[a, l] = zero
+    for q in range(column_start[ny], column_start[ny + 1]):
+        c = column_rows[q]
+        for a in range(nx):
+            for l in range(nl):
+                Sd[a, l] += S[a, c, l] * ABb[c, ny, l]
     for a in range(nv):  # [Q_vx Q_vv] = H_v + B_v^T S [A B_v] (lower triangle of Q_vv)
         width = nx + a + 1
         for b in range(width):

@@ -115,12 +115,14 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
         for b in range(nlam):
             for j in range(lanes):
                 eta[b, j] = Mt[b, ny, j] - dw[k, ny + b, j]
-        for a in range(ny):
+        for a in range(ny):  # M^T eta, summed over b in order, the rows a side by side
             for j in range(lanes):
                 gy[k, a, j] = zero
-            for b in range(nlam):
+        for b in range(nlam):
+            for a in range(ny):
                 for j in range(lanes):
                     gy[k, a, j] += Mt[b, a, j] * eta[b, j]
+        for a in range(ny):
             for j in range(lanes):
                 g = dw[k, a, j] * g2[a]
                 if a < nx:
@@ -153,7 +155,8 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
                     b = column_rows[q]
                     for j in range(lanes):
                         xn[a, j] += e[b, j] * ABd[b, a, o + j]
-                for b in range(nv):
+            for b in range(nv):  # - Y^T t, each row's terms in order, rows side by side
+                for a in range(nx):
                     for j in range(lanes):
                         xn[a, j] -= tt[k, b, j] * Y[k, b, a, o + j]
             for a in range(nx):
@@ -164,12 +167,14 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
             x[a, j] = x0[a] / D[a, o + j]
             zt[0, a, j] = x0[a]
     for k in range(T):
-        for a in range(nv - 1, -1, -1):  # v = -L^-T (Y x + t)
+        for a in range(nv):  # r = Y x + t, each row's terms in order, rows side by side
             for j in range(lanes):
                 r[a, j] = tt[k, a, j]
-            for b in range(nx):
+        for b in range(nx):
+            for a in range(nv):
                 for j in range(lanes):
                     r[a, j] += Y[k, a, b, o + j] * x[b, j]
+        for a in range(nv - 1, -1, -1):  # v = -L^-T r
             for j in range(lanes):
                 v[a, j] = -r[a, j]
             for b in range(a + 1, nv):
@@ -193,11 +198,12 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
             for j in range(lanes):
                 x[a, j] = xn[a, j]
                 zt[k + 1, a, j] = xn[a, j] * D[a, o + j]
-    for k in range(T):  # eta = M y + c
+    for k in range(T):  # eta = M y + c, each row's terms in order, rows side by side
         for b in range(nlam):
             for j in range(lanes):
                 zt[k, ny + b, j] = Mt[b, ny, j]
-            for a in range(ny):
+        for a in range(ny):
+            for b in range(nlam):
                 for j in range(lanes):
                     zt[k, ny + b, j] += Mt[b, a, j] * zt[k, a, j]
     for j in range(lanes):
