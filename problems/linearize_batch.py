@@ -41,8 +41,9 @@ The result equals ``linearize(build_scene(l=l_j), x, u, dt)`` for every sample t
 (tested to 1e-9 along the scripted push). With ``kernel="compiled"`` (:class:`LcsKernel`) the
 per-sample part runs as one numba call (:mod:`c3bench.problems.linearize_compiled`, Anitescu
 model), equal to the numpy part to rounding; it halves the build (0.57 -> 0.28 ms at 16
-samples alone: the numpy part is some 60 small array calls whose Python overhead dominates). Only the planar scene is supported; the spatial
-variant raises ``NotImplementedError``.
+samples alone: the numpy part is some 60 small array calls whose Python overhead
+dominates). Only the planar scene is supported; the spatial variant raises
+``NotImplementedError``.
 
 This is the plant side (it imports MuJoCo); the :class:`c3bench.problems.lcs.LCSBatch` type it
 returns is in the plant-free core.

@@ -30,8 +30,9 @@ class CompiledFactors:
     :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE` samples on as vector lanes).
 
     ``Y`` (T, nv, nx, m n) = ``L^-1 Q_vx``, ``L`` (T, nv, nv, m n) lower Cholesky factors of
-    ``Q_vv`` (upper triangle 0), ``Sd`` (T, nx, m n), ``D`` (ny, m n), ``ABd`` (nx, ny + 1,
-    m n) the scaled ``[A B_v d]``; ``failed`` (m n,): -1 or the time step whose Cholesky
+    ``Q_vv`` with the reciprocals of their diagonals on the diagonal (upper triangle 0),
+    ``Sd`` (T, nx, m n), ``D`` (ny, m n), ``ABd`` (nx, ny + 1, m n) the scaled ``[A B_v
+    d]``; ``failed`` (m n,): -1 or the time step whose Cholesky
     factorisation failed.
     """
 

@@ -30,7 +30,9 @@ batch. Three rearrangements save work without changing the exact answer:
 
 The factorisation divides by the diagonal of ``L`` through its reciprocals (one division
 per pivot instead of one per entry of ``L`` and ``Y``; vector division is many times
-slower than multiplication), which changes results by rounding only.
+slower than multiplication), which changes results by rounding only, and stores those
+reciprocals on ``L``'s diagonal, so that the triangular solves of the passes multiply too (a
+division's latency sat on their critical path: the one-sample iteration 8.3 -> 7.8 us).
 
 **Layout.** :func:`factorize_batch` works every (rho value, sample) pair as a *lane*,
 lane ``i n + j`` for rho ``i`` and sample ``j``, with the lane index last in every array, so
@@ -165,7 +167,8 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     ``column_start``, ``column_rows``: the columns of :class:`Structure`.
     Outputs (preallocated, lane ``l = i n + j`` of rho ``i`` and sample ``j`` last, at least
     ``m n`` lanes): ``Y`` (T, nv, nx, lanes) = ``L^-1 Q_vx``, ``L`` (T, nv, nv, lanes) lower
-    Cholesky factors of ``Q_vv`` (the upper triangle is not written), ``Sd`` (T, nx, lanes) =
+    Cholesky factors of ``Q_vv`` with ``1 / L[a, a]`` on the diagonal (the upper triangle is
+    not written), ``Sd`` (T, nx, lanes) =
     ``S_{k+1} d``, ``D`` (ny, lanes) scaling, ``ABd`` (nx, ny + 1, lanes) = scaled ``[A B_v
     d]``; ``failed`` (lanes,): -1, or the (first, backward) step whose ``Q_vv`` is not positive
     definite.
@@ -347,9 +350,9 @@ def _riccati_lanes(k: int, nl: int, nx: int, nv: int, zero: Any, one: Any,
                     positive = sv[l] > zero
                     fb[l] = k if (not positive and fb[l] < 0) else fb[l]
                     sv[l] = sv[l] if positive else one
-                for l in range(nl):
-                    L[a, a, l] = np.sqrt(sv[l])
-                    Li[a, l] = one / L[a, a, l]
+                for l in range(nl):  # the diagonal holds 1 / L[a, a] (never read back
+                    Li[a, l] = one / np.sqrt(sv[l])  # here; the passes multiply by it)
+                    L[a, a, l] = Li[a, l]
             else:
                 for l in range(nl):
                     L[a, b, l] = sv[l] * Li[b, l]

@@ -139,14 +139,14 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
                 b = column_rows[q]
                 for j in range(lanes):
                     r[a, j] += e[b, j] * ABd[b, nx + a, o + j]
-        for a in range(nv):  # L t = r
+        for a in range(nv):  # L t = r (L's diagonal holds 1 / L[a, a])
             for j in range(lanes):
                 tt[k, a, j] = r[a, j]
             for b in range(a):
                 for j in range(lanes):
                     tt[k, a, j] -= L[k, a, b, o + j] * tt[k, b, j]
             for j in range(lanes):
-                tt[k, a, j] = tt[k, a, j] / L[k, a, a, o + j]
+                tt[k, a, j] = tt[k, a, j] * L[k, a, a, o + j]
         if k > 0:
             for a in range(nx):  # e <- S_k d + g_x + A^T e - Y^T t
                 for j in range(lanes):
@@ -181,7 +181,7 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
                 for j in range(lanes):
                     v[a, j] -= L[k, b, a, o + j] * v[b, j]
             for j in range(lanes):
-                v[a, j] = v[a, j] / L[k, a, a, o + j]
+                v[a, j] = v[a, j] * L[k, a, a, o + j]
                 zt[k, nx + a, j] = v[a, j] * D[nx + a, o + j]
         for a in range(nx):  # x <- A x + B_v v + d
             for j in range(lanes):
@@ -314,7 +314,7 @@ def _solve_sample(j: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
             s = r[a]
             for b in range(a):
                 s -= L[k, a, b] * tt[k, b]
-            tt[k, a] = s / L[k, a, a]
+            tt[k, a] = s * L[k, a, a]
         if k > 0:
             for a in range(nx):  # e <- S_k d + g_x + A^T e - Y^T t
                 s = gy[k, a] + Sd[k - 1, a]
@@ -337,7 +337,7 @@ def _solve_sample(j: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
             s = -s
             for b in range(a + 1, nv):
                 s -= L[k, b, a] * v[b]
-            v[a] = s / L[k, a, a]
+            v[a] = s * L[k, a, a]
             z_steps[j, k, nx + a] = v[a] * D[nx + a]
         for a in range(nx):  # x <- A x + B_v v + d
             s = ABd[a, ny]
