@@ -73,7 +73,7 @@ def jax_ready(values: Any) -> None:
     asynchronously, and a timer stopped before this measures the dispatch only."""
     import jax
 
-    jax.block_until_ready(values)
+    jax.block_until_ready(values)  # type: ignore[no-untyped-call]
 
 
 def jax_modules() -> tuple[Any, Any, Any]:
