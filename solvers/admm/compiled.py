@@ -321,10 +321,10 @@ class CompiledC3PlusKernel:
         shape = (n, nx, nlam, nu)
         if shape != self._shape:
             dt = self.dtype
-            self._arrays = {"A": np.empty((n, nx, nx), dt), "Bv": np.empty((n, nx, nv), dt),
-                            "d": np.empty((n, nx), dt), "Mc": np.empty((n, nlam, ny + 1), dt),
+            self._arrays = {"A": np.empty((nx, nx, n), dt), "Bv": np.empty((nx, nv, n), dt),
+                            "d": np.empty((nx, n), dt), "Mc": np.empty((n, nlam, ny + 1), dt),
                             "Mt": np.empty((nlam, ny + 1, n), dt),
-                            "MtM": np.empty((n, ny, ny), dt)}
+                            "MtM": np.empty((ny, ny, n), dt)}  # samples last but Mc
             self._shape = shape
             self._step_shape = (n, self.mpc.horizon, ny + nlam)
             self._planned = None
@@ -411,7 +411,7 @@ class CompiledC3PlusKernel:
                     self._one, self.structure.column_start, self.structure.column_rows, out.Y,
                     out.L, out.Sd, out.D, out.ABd, out.failed)
         self.factor_seconds += time.perf_counter() - started
-        self.flops += len(rhos) * a["A"].shape[0] * self._lane_flops
+        self.flops += len(rhos) * a["A"].shape[2] * self._lane_flops
         return keys
 
     def _stack(self, rhos: Sequence[Mapping[str, float]],

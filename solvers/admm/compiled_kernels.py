@@ -105,11 +105,12 @@ def factor_flops(nx: int, nv: int, pattern: Structure | None = None) -> int:
 
 
 def setup_flops(nx: int, nv: int) -> int:
-    """Floating-point operations of one lane's setup in :func:`factorize_batch`: ``H_y``
-    (a multiply-add per entry), its scaling (two products per entry), the scaled ``[A B_v d]``
-    and ``S_T``."""
+    """Floating-point operations of one lane's setup in :func:`factorize_batch`: the entries
+    of ``H_y`` the backward steps read (:func:`_used_columns`: a multiply-add each, then two
+    products for the scaling), the scaled ``[A B_v d]`` and ``S_T``."""
     ny = nx + nv
-    return 4 * ny * ny + 2 * nx * (ny + 1) + 2 * nx * nx + 2 * ny
+    used = nx * (nx + 1) // 2 + nv * nx + nv * (nv + 1) // 2
+    return 4 * used + 2 * nx * (ny + 1) + 2 * nx * nx + 2 * ny
 
 
 LANE_BLOCK = 32
@@ -161,7 +162,8 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
                     D: np.ndarray, ABd: np.ndarray, failed: np.ndarray) -> None:
     """Factorise ``m`` rho values for ``n`` samples (module docstring).
 
-    Inputs: ``A`` (n, nx, nx), ``Bv`` (n, nx, nv), ``d`` (n, nx), ``MtM`` (n, ny, ny);
+    Inputs (samples last): ``A`` (nx, nx, n), ``Bv`` (nx, nv, n), ``d`` (nx, n), ``MtM``
+    (ny, ny, n);
     ``base`` (m, ny, ny) = ``blockdiag(2Q + 2 rho_x I, 2 rho_lam I, 2R + 2 rho_u I)``,
     ``two_rho_eta`` (m,), so ``H_y = base + 2 rho_eta M^T M``; ``PT`` (nx, nx);
     ``column_start``, ``column_rows``: the columns of :class:`Structure`.
@@ -179,8 +181,8 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     into its lanes of the outputs (writing a block at an offset into the outputs directly
     measured 1.5-2.3 times slower: LLVM's vectoriser gives up on most of those loops).
     """
-    m, n = base.shape[0], A.shape[0]
-    nx, nv = A.shape[1], Bv.shape[2]
+    m, n = base.shape[0], A.shape[2]
+    nx, nv = A.shape[0], Bv.shape[1]
     ny = nx + nv
     T = Y.shape[0]
     lanes = m * n
@@ -257,28 +259,39 @@ def _store_block(l0: int, nl: int, fb: np.ndarray, Db: np.ndarray, ABb: np.ndarr
 
 
 @jit
+def _used_columns(a: int, nx: int, ny: int) -> tuple[int, int]:
+    """The columns ``first .. stop`` of row ``a`` of ``H_y`` that :func:`_riccati_lanes`
+    reads: the upper triangle of the ``x`` block (``S_k``'s ``H_xx``) and, in the rows of
+    ``v``, everything up to the diagonal (``[Q_vx Q_vv]``'s lower part); the rest of ``H_y``
+    is left unwritten."""
+    return (a, nx) if a < nx else (0, a + 1)
+
+
+@jit
 def _scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                  base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray, ridge: Any,
                  jacobi: bool, zero: Any, one: Any, li: np.ndarray, lj: np.ndarray, nl: int,
                  Hy: np.ndarray, S: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
                  scratch: np.ndarray) -> None:
-    """``H_y`` scaled to a unit diagonal (plus ridge), ``D``, the scaled ``[A B_v d]`` and
-    ``S_T = D_x P_T D_x`` of the ``nl`` lanes (rho ``li[l]``, sample ``lj[l]``); lane
-    index innermost in every loop."""
-    nx, nv = A.shape[1], Bv.shape[2]
+    """``H_y`` scaled to a unit diagonal (plus ridge; the entries of :func:`_used_columns`),
+    ``D``, the scaled ``[A B_v d]`` and ``S_T = D_x P_T D_x`` of the ``nl`` lanes (rho
+    ``li[l]``, sample ``lj[l]``); lane index innermost in every loop."""
+    nx, nv = A.shape[0], Bv.shape[1]
     ny = nx + nv
     for l in range(nl):
         scratch[l] = two_rho_eta[li[l]]
-    for a in range(ny):
-        for b in range(ny):
+    for a in range(ny):  # only the entries the backward steps read (_used_columns)
+        first, stop = _used_columns(a, nx, ny)
+        for b in range(first, stop):
             for l in range(nl):
-                Hy[a, b, l] = MtM[lj[l], a, b] * scratch[l] + base[li[l], a, b]
+                Hy[a, b, l] = MtM[a, b, lj[l]] * scratch[l] + base[li[l], a, b]
     for a in range(ny):
         for l in range(nl):
             h = Hy[a, a, l]
             Db[a, l] = one / np.sqrt(h) if (jacobi and h > zero) else one
     for a in range(ny):
-        for b in range(ny):
+        first, stop = _used_columns(a, nx, ny)
+        for b in range(first, stop):
             for l in range(nl):
                 Hy[a, b, l] = Hy[a, b, l] * Db[a, l] * Db[b, l]
     for a in range(nx, ny):
@@ -289,13 +302,13 @@ def _scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
             scratch[l] = one / Db[a, l]
         for b in range(nx):
             for l in range(nl):
-                ABb[a, b, l] = A[lj[l], a, b] * scratch[l] * Db[b, l]
+                ABb[a, b, l] = A[a, b, lj[l]] * scratch[l] * Db[b, l]
                 S[a, b, l] = PT[a, b] * Db[a, l] * Db[b, l]
         for b in range(nv):
             for l in range(nl):
-                ABb[a, nx + b, l] = Bv[lj[l], a, b] * scratch[l] * Db[nx + b, l]
+                ABb[a, nx + b, l] = Bv[a, b, lj[l]] * scratch[l] * Db[nx + b, l]
         for l in range(nl):
-            ABb[a, ny, l] = d[lj[l], a] * scratch[l]
+            ABb[a, ny, l] = d[a, lj[l]] * scratch[l]
 
 
 @jit
@@ -391,29 +404,30 @@ def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.n
              Bv: np.ndarray, d_out: np.ndarray, Mc: np.ndarray, Mt: np.ndarray,
              MtM: np.ndarray, mask: np.ndarray) -> None:
     """The kernel's per-step data from an LCS batch ``x+ = A x + B u + D lam + d``, ``eta = E x
-    + F lam + H u + c``, in the output arrays' precision: ``A_out``, ``B_v = [D B]``, ``d_out``,
-    ``[M c] = [E F H c]`` (n, nlam, ny + 1) and the same with the samples last (nlam, ny + 1,
-    n), ``M^T M`` (n, ny, ny; each entry's sum over the rows of ``M`` in order, the upper
-    triangle mirrored) and ``mask`` (nx, ny + 1): the entries of ``[A B_v d]`` that are not
-    zero in some sample (:func:`structure`)."""
+    + F lam + H u + c``, in the output arrays' precision: ``A_out`` (nx, nx, n), ``B_v = [D B]``
+    (nx, nv, n), ``d_out`` (nx, n), ``[M c] = [E F H c]`` (n, nlam, ny + 1) and the same with
+    the samples last (nlam, ny + 1, n), ``M^T M`` (ny, ny, n; each entry's sum over the rows
+    of ``M`` in order, the upper triangle mirrored), samples last so that a factorisation's
+    lanes read consecutive samples from one or two cache lines, and ``mask`` (nx, ny + 1):
+    the entries of ``[A B_v d]`` that are not zero in some sample (:func:`structure`)."""
     n, nx, nu = B.shape
-    nlam = D.shape[2]
+    nlam = D.shape[2]  # the LCS's D (n, nx, nlam)
     ny = nx + nlam + nu
     M, product = np.empty((nlam, ny)), np.empty((ny, ny))
     mask[:, :] = False
     for j in range(n):
         for a in range(nx):
             for b in range(nx):
-                A_out[j, a, b] = A[j, a, b]
-                mask[a, b] |= A_out[j, a, b] != zero
+                A_out[a, b, j] = A[j, a, b]
+                mask[a, b] |= A_out[a, b, j] != zero
             for b in range(nlam):
-                Bv[j, a, b] = D[j, a, b]
-                mask[a, nx + b] |= Bv[j, a, b] != zero
+                Bv[a, b, j] = D[j, a, b]
+                mask[a, nx + b] |= Bv[a, b, j] != zero
             for b in range(nu):
-                Bv[j, a, nlam + b] = B[j, a, b]
-                mask[a, nx + nlam + b] |= Bv[j, a, nlam + b] != zero
-            d_out[j, a] = d[j, a]
-            mask[a, ny] |= d_out[j, a] != zero
+                Bv[a, nlam + b, j] = B[j, a, b]
+                mask[a, nx + nlam + b] |= Bv[a, nlam + b, j] != zero
+            d_out[a, j] = d[j, a]
+            mask[a, ny] |= d_out[a, j] != zero
         for r in range(nlam):
             for b in range(nx):
                 Mc[j, r, b] = E[j, r, b]
@@ -438,5 +452,5 @@ def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.n
                     product[a, b] += M[r, a] * M[r, b]
         for a in range(ny):
             for b in range(a, ny):
-                MtM[j, a, b] = product[a, b]
-                MtM[j, b, a] = product[a, b]
+                MtM[a, b, j] = product[a, b]
+                MtM[b, a, j] = product[a, b]
