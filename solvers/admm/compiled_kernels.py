@@ -413,7 +413,7 @@ def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.n
     n, nx, nu = B.shape
     nlam = D.shape[2]  # the LCS's D (n, nx, nlam)
     ny = nx + nlam + nu
-    M, product = np.empty((nlam, ny)), np.empty((ny, ny))
+    M, product = np.empty((nlam, ny, n)), np.empty((ny, ny, n))
     mask[:, :] = False
     for j in range(n):
         for a in range(nx):
@@ -438,19 +438,21 @@ def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.n
             Mc[j, r, ny] = c[j, r]
             for b in range(ny + 1):
                 Mt[r, b, j] = Mc[j, r, b]
-        for r in range(nlam):  # this sample's M as given (float64)
+        for r in range(nlam):  # M as given (float64), samples last
             for b in range(nx):
-                M[r, b] = E[j, r, b]
+                M[r, b, j] = E[j, r, b]
             for b in range(nlam):
-                M[r, nx + b] = F[j, r, b]
+                M[r, nx + b, j] = F[j, r, b]
             for b in range(nu):
-                M[r, nx + nlam + b] = H[j, r, b]
-        product[:, :] = 0.0
-        for r in range(nlam):
-            for a in range(ny):
-                for b in range(a, ny):
-                    product[a, b] += M[r, a] * M[r, b]
+                M[r, nx + nlam + b, j] = H[j, r, b]
+    product[:, :, :] = 0.0  # M^T M, every sample at once: each entry's sum in r order
+    for r in range(nlam):
         for a in range(ny):
             for b in range(a, ny):
-                MtM[a, b, j] = product[a, b]
-                MtM[b, a, j] = product[a, b]
+                for j in range(n):
+                    product[a, b, j] += M[r, a, j] * M[r, b, j]
+    for a in range(ny):
+        for b in range(a, ny):
+            for j in range(n):
+                MtM[a, b, j] = product[a, b, j]
+                MtM[b, a, j] = product[a, b, j]
