@@ -42,6 +42,9 @@ __all__ = ["sample_lcs"]
 
 
 def _jit(function: Any) -> Any:
+    """``numba.njit(cache=True, fastmath=False, error_model="numpy")``: machine code cached on
+    disk, no reassociated sums, IEEE division (no zero-divisor test in the loops). The core
+    cannot import the solvers' helper of the same name (layers), hence this one."""
     return numba.njit(cache=True, fastmath=False, error_model="numpy")(function)
 
 
