@@ -25,7 +25,7 @@ import numpy as np
 from c3bench.problems.config import Config
 from c3bench.problems.errors import InputError
 from c3bench.problems.lcs import ContactModel
-from c3bench.problems.names import Variant
+from c3bench.problems.names import LcsKernel, Variant
 from c3bench.problems.scene import Scene, build_scene
 
 if TYPE_CHECKING:
@@ -275,7 +275,7 @@ def make_policy(spec: ControllerSpec, config: Config,
         from c3bench.solvers.lcp_batch import warm_up
 
         linearizer = BatchLinearizer(sides, config, contact_model=spec.lcs_contact_model,
-                                     kernel="compiled")
+                                     kernel=LcsKernel.COMPILED)
         fast = FastC3PlusController(CompiledC3Plus(mpc, fast_options(
             rho_schedule=spec.rho_schedule, admm_iterations=spec.admm_iterations,
             warm_dual=spec.warm_dual)))

@@ -15,7 +15,7 @@ cube sides ``l_j ~ U[0.27, 0.33]`` (seeded; ``n = 1`` uses the reference study's
 **Backends**: the table :data:`bench.perf_backends.BACKEND_TABLE`, one factory each:
 ``c3plus-riccati`` (:class:`solvers.fast.FastC3Plus`, numpy), ``c3plus-compiled`` (the numba
 kernel :class:`solvers.admm.compiled.CompiledC3PlusKernel` and the compiled per-sample LCS
-build, :class:`problems.linearize_batch.LcsKernel` ``COMPILED``, where the other batched
+build, :class:`problems.names.LcsKernel` ``COMPILED``, where the other batched
 backends build it with numpy; a skipped row "compiled kernel
 unavailable: ..." when it does not import; its JIT compile seconds are stored in
 ``compile_s``, the compilation happens in the warm-up steps), ``c3plus-jax``

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from c3bench.problems.errors import C3BenchError
-from c3bench.problems.names import Precision
+from c3bench.problems.names import LcsKernel, Precision
 
 WEIGHTING_WINDOW = 5
 """Observed transitions the LCP-error weighting looks back on (as the robust closed loop)."""
@@ -153,11 +153,11 @@ def _options(context: PerfContext) -> Any:
 
 
 def batched_step(context: PerfContext, config: Configuration, controller: Any,
-                 whole_call: bool = False, lcs_kernel: str = "numpy") -> Step:
+                 whole_call: bool = False, lcs_kernel: LcsKernel = LcsKernel.NUMPY) -> Step:
     """A step of a batched controller (``step(lcs_batch, x0, weights)`` returning ``.u``,
     ``.ok``, ``.iterations``, ``.timings``) with :class:`problems.linearize_batch.
-    BatchLinearizer` (its per-sample part by ``lcs_kernel``, :class:`problems.
-    linearize_batch.LcsKernel`); ``whole_call``: one compiled call, ``qp`` is its whole
+    BatchLinearizer` (its per-sample part by ``lcs_kernel``, :class:`problems.names.
+    LcsKernel`); ``whole_call``: one compiled call, ``qp`` is its whole
     time."""
     from c3bench.problems.linearize_batch import BatchLinearizer
 
@@ -199,8 +199,8 @@ def make_riccati(context: PerfContext, config: Configuration) -> PreparedBackend
 
 def make_compiled(context: PerfContext, config: Configuration) -> PreparedBackend:
     """``c3plus-compiled``: :class:`solvers.admm.compiled_solver.CompiledC3Plus` (numba
-    kernel, the one ADMM loop) with the compiled LCS build (:class:`problems.linearize_batch.
-    LcsKernel` ``COMPILED``; the other batched backends build it with numpy); unavailable
+    kernel, the one ADMM loop) with the compiled LCS build (:class:`problems.names.LcsKernel`
+    ``COMPILED``; the other batched backends build it with numpy); unavailable
     (with the import's reason) when it does not import. Its JIT compilation happens in the
     warm-up steps; ``compile_seconds`` is read after them."""
     try:
@@ -218,7 +218,7 @@ def make_compiled(context: PerfContext, config: Configuration) -> PreparedBacken
         return solver.executed_flops
 
     return PreparedBackend(batched_step(context, config, FastC3PlusController(solver),
-                                        lcs_kernel="compiled"),
+                                        lcs_kernel=LcsKernel.COMPILED),
                            compile_seconds=compile_seconds, executed_flops=executed_flops)
 
 

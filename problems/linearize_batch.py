@@ -52,7 +52,6 @@ returns is in the plant-free core.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from enum import StrEnum
 
 import mujoco
 import numpy as np
@@ -60,6 +59,7 @@ import numpy as np
 from c3bench.problems.config import Config, load_config
 from c3bench.problems.lcs import CONTACT_MODELS, LCSBatch, assemble_lcs, check_dt
 from c3bench.problems.linearize import SmoothDynamics, smooth_dynamics
+from c3bench.problems.names import LcsKernel
 from c3bench.problems.scene import Scene, build_scene, home_state
 
 
@@ -68,15 +68,6 @@ def _skew_apply(columns: np.ndarray, r: np.ndarray) -> np.ndarray:
     a0, a1, a2 = columns[..., 0, :], columns[..., 1, :], columns[..., 2, :]
     r0, r1, r2 = r[..., 0, None], r[..., 1, None], r[..., 2, None]
     return np.stack([a1 * r2 - a2 * r1, a2 * r0 - a0 * r2, a0 * r1 - a1 * r0], axis=-2)
-
-
-class LcsKernel(StrEnum):
-    """How :class:`BatchLinearizer` works out the per-sample part of the LCS."""
-
-    NUMPY = "numpy"
-    """numpy over a leading sample axis (module docstring)."""
-    COMPILED = "compiled"
-    """One numba call (:func:`c3bench.problems.linearize_compiled.sample_lcs`), Anitescu only."""
 
 
 class BatchLinearizer:
@@ -142,6 +133,7 @@ class BatchLinearizer:
         # MuJoCo's box inertia about a principal axis, m (h_1^2 + h_2^2) / 3 (isotropic cube)
         self.inertia = mass * (self.half * self.half + self.half * self.half) / 3.0
         self.inertia_ref = float(scene.model.body_inertia[self.cube_body][1])
+        self.inertia_shift = self.inertia - self.inertia_ref  # I_j - I_ref
         h = self.half
         # bottom corners in the cube frame, in the scene's site order (-x then +x)
         self.corners_local = np.stack([
@@ -196,7 +188,7 @@ class BatchLinearizer:
         # ---- per sample: inertia, smooth dynamics ------------------------------------------
         n = self.n_samples
         M = np.broadcast_to(M_ref, (n, nv, nv)) + \
-            (self.inertia - self.inertia_ref)[:, None, None] * (jacr_cube.T @ jacr_cube)
+            self.inertia_shift[:, None, None] * (jacr_cube.T @ jacr_cube)
         M_inv = np.linalg.inv(M)
         M_inv = 0.5 * (M_inv + np.swapaxes(M_inv, -1, -2))
         transfer = M_inv @ M_ref  # M_j^-1 M_ref
@@ -269,7 +261,7 @@ class BatchLinearizer:
         d, E, F = np.empty((n, nx)), np.empty((n, nlam, nx)), np.empty((n, nlam, nlam))
         H, c, phi = np.empty((n, nlam, nu)), np.empty((n, nlam)), np.empty((n, self.n_contacts))
         sample_lcs(dt, x[:nq], x[nq:], u, dyn.N, dyn.N_pinv, dyn.J_q, dyn.J_v, dyn.J_u,
-                   dyn.acceleration, M_ref, self.inertia - self.inertia_ref, self.half,
+                   dyn.acceleration, M_ref, self.inertia_shift, self.half,
                    self.corners_local, cube_origin, cube_rot, jacp_cube, jacr_cube,
                    ball_origin, jacp_ball, jacr_ball, box_pos, box_rot, centre,
                    self.ball_radius, float(table_z), self.ball_table, self.E_t, self.mu,

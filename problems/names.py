@@ -150,6 +150,16 @@ class Block(StrEnum):
     ETA = "eta"
 
 
+class LcsKernel(StrEnum):
+    """How the batched LCS build (:class:`c3bench.problems.linearize_batch.BatchLinearizer`)
+    works out each model sample's LCS."""
+
+    NUMPY = "numpy"
+    """numpy over a leading sample axis."""
+    COMPILED = "compiled"
+    """One numba call (:func:`c3bench.problems.linearize_compiled.sample_lcs`), Anitescu only."""
+
+
 BLOCKS: Final = (Block.X, Block.LAM, Block.U, Block.ETA)
 """The blocks of one step in their order inside ``z_k``."""
 

@@ -33,6 +33,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 @pytest.fixture(scope="session")
+def compiled_kernels() -> None:
+    """Every compiled ADMM kernel signature compiled or loaded from numba's cache, once."""
+    from c3bench.solvers.admm.compiled_solver import warm_up
+
+    assert warm_up() >= 0.0
+
+
+@pytest.fixture(scope="session")
 def quick(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Problem]:
     """The quick suite's projection and mpcc instances by name."""
     out: Path = tmp_path_factory.mktemp("quick_complementarity")

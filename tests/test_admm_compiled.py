@@ -19,7 +19,6 @@ from c3bench.problems.names import Precision
 from c3bench.solvers.admm import compiled_kernels as kernels
 from c3bench.solvers.admm import compiled_passes as passes
 from c3bench.solvers.admm.compiled import CompiledC3PlusKernel, KernelFailure
-from c3bench.solvers.admm.compiled_solver import warm_up
 from c3bench.solvers.fast import FastC3Plus, RiccatiOptions, project_c3plus_batch
 
 TOLERANCE = {Precision.FLOAT64: 1e-9, Precision.FLOAT32: 2e-3}
@@ -31,9 +30,7 @@ def _relative(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(np.asarray(a, dtype=float) - b)) / max(1.0, np.max(np.abs(b))))
 
 
-@pytest.fixture(scope="module", autouse=True)
-def compiled() -> None:
-    assert warm_up() >= 0.0
+pytestmark = pytest.mark.usefixtures("compiled_kernels")
 
 
 @pytest.fixture(scope="module")

@@ -17,15 +17,12 @@ from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC
 from c3bench.problems.names import Precision
 from c3bench.solvers.admm.compiled_factors import plan_group
-from c3bench.solvers.admm.compiled_solver import CompiledC3Plus, warm_up
+from c3bench.solvers.admm.compiled_solver import CompiledC3Plus
 from c3bench.solvers.admm.loop import plan_ratios, rescale_dual
 from c3bench.solvers.admm.options import C3Options
 from c3bench.solvers.admm.solution import C3Solution
 
-
-@pytest.fixture(scope="module", autouse=True)
-def compiled() -> None:
-    assert warm_up() >= 0.0
+pytestmark = pytest.mark.usefixtures("compiled_kernels")
 
 
 @pytest.fixture(scope="module")
