@@ -307,9 +307,11 @@ def _add_perf(sub: Any) -> None:
                       help="device of the JAX backend; the others run on the CPU "
                            "(default: cpu)")
     perf.add_argument("--repeats", type=positive_int, default=defaults.repeats, metavar="N",
-                      help=f"timed control steps each (default: {defaults.repeats})")
+                      help=f"timed rounds, each a block of two consecutive control steps "
+                           f"(the first stored cache-cold, the second warm) per backend "
+                           f"(default: {defaults.repeats})")
     perf.add_argument("--warmup", type=nonnegative_int, default=defaults.warmup, metavar="N",
-                      help=f"untimed steps first (default: {defaults.warmup})")
+                      help=f"untimed rounds first (default: {defaults.warmup})")
     perf.add_argument("--iterations", type=positive_int, default=defaults.iterations,
                       metavar="N",
                       help=f"ADMM iterations per step (default: {defaults.iterations})")

@@ -25,7 +25,7 @@ visible" when JAX sees none; nothing is faked), ``c3-osqp`` and ``c3-clarabel`` 
 reference controller :class:`solvers.c3.C3Controller`, C3+, with that registry QP backend,
 ``step`` at ``n = 1`` and ``step_robust`` at ``n = 16``, other ``n`` skipped; a
 configuration whose first step takes longer than ``reference_budget`` seconds is skipped,
-and the repeats are cut to fit the budget otherwise, noted).
+and the rounds are cut to fit the budget otherwise, noted).
 
 **Split** of each step: ``lcs`` (LCS build), ``weighting`` (0 when not weighted), ``admm``
 (the controller's call alone), inside it ``qp`` (factorisations, gradients and linear
@@ -45,15 +45,25 @@ flops per second) and its share of the matmul rate.
 **Ratios** (:mod:`bench.perf_summary`): each configuration's median time over that of
 ``c3plus-riccati`` float64 and of ``c3-osqp`` at the same samples in the same run.
 
-**Interleaved.** For each sample count every backend is prepared and warmed up, then the
-timed steps go round-robin (step ``r`` of each backend in turn), so that a slow phase of a
-shared machine falls on every backend alike and the ratios compare like with like (measured:
-timing the backends one after another, the first one ran in a slow phase and its LCS build,
-the same code for every backend, took 1.4-2.2 times as long as the next backend's, which
-made the compiled kernel look 1.6 times faster than it is). A progress bar (stderr) counts
-the steps of each sample count.
+**Interleaved, in blocks of two.** For each sample count every backend is prepared, then
+the steps go round-robin in *rounds*: in round ``r`` each backend in turn runs a block of two
+consecutive control steps (the next two states of its sequence, warm-started as ever), so that
+a slow phase of a shared machine falls on every backend alike and the ratios compare like with
+like (measured: timing the backends one after another, the first one ran in a slow phase and
+its LCS build, the same code for every backend, took 1.4-2.2 times as long as the next
+backend's, which made the compiled kernel look 1.6 times faster than it is). The first step
+of a block is stored as ``cache = cold`` (it follows another backend's step, which has pushed
+this one's code and data out of the core's caches), the second as ``warm`` (it follows its
+own step, as a controller with the core to itself between steps):
+:class:`bench.perf_store.CacheState`. The two are summarised apart and every ratio compares
+like with like (cold with cold, warm with warm); they differ most for small, fast steps
+(measured on the 2-core EPYC VM: the compiled one-sample step 1.25 ms cold, 0.65 ms warm;
+the numpy one 3.9 and 3.3 ms). With one configuration at a sample count every step is warm.
+``repeats`` is the number of timed rounds (so ``repeats`` steps in each cache state), after
+``warmup`` rounds (default 2) that are not recorded. A progress bar (stderr) counts the
+steps of each sample count.
 
-Warm-up steps (default 2) are excluded; BLAS is pinned to one thread (threadpoolctl)
+Warm-up rounds are excluded; BLAS is pinned to one thread (threadpoolctl)
 during every measurement and the count is recorded; ``--cpu N`` pins the whole process to
 core ``N``.
 
@@ -85,6 +95,7 @@ from c3bench.bench.machine import affinity, host_label, load_average, utc_stamp
 from c3bench.bench.perf_backends import (
     BACKEND_TABLE,
     REFERENCE_SAMPLES,
+    STEPS_PER_ROUND,
     BackendUnavailable,
     Configuration,
     PerfContext,
@@ -100,6 +111,7 @@ from c3bench.bench.perf_flops import (
     admm_flops,
     machine_rates,
 )
+from c3bench.bench.perf_store import CacheState
 from c3bench.bench.perf_summary import format_line, format_ms, format_summary_line, summarize
 from c3bench.bench.progress import progress_bar
 from c3bench.problems.errors import InputError
@@ -228,7 +240,7 @@ def _row(run: _Run, config: Configuration, **values: Any) -> dict[str, Any]:
         "weighting_ms": math.nan, "admm_ms": math.nan, "total_no_weighting_ms": math.nan,
         "admm_mflop": math.nan, "matmul_gflops_f64": run.rates.float64,
         "matmul_gflops_f32": run.rates.float32, "compile_s": math.nan,
-        "admm_mflop_executed": math.nan,
+        "admm_mflop_executed": math.nan, "cache": "",
     }
     row.update(values)
     return row
@@ -249,6 +261,7 @@ class _Measurement:
     config: Configuration
     prepared: PreparedBackend
     repeats: int
+    """Timed rounds (two steps each: one cold, one warm)."""
     note: str
     failure_prefix: str
     """Start of the skipped row's note when a step raises (:class:`BackendSpec` ``failure``)."""
@@ -257,15 +270,17 @@ class _Measurement:
     """Why it stopped (the skipped row's note), or ``None``."""
 
 
-def _time_step(run: _Run, m: _Measurement, r: int, load: float, threads: int) -> None:
-    """Run step ``r`` of ``m`` (a warm-up step when ``r < warmup``: not recorded)."""
+def _time_step(run: _Run, m: _Measurement, step: int, cache: CacheState, load: float,
+               threads: int) -> None:
+    """Run step ``step`` of ``m``'s sequence (recorded from the first timed round on, with its
+    ``cache`` state)."""
     context = run.context
-    index, x, u_prev = context.states[r % len(context.states)]
+    index, x, u_prev = context.states[step % len(context.states)]
     wall, cpu = time.perf_counter(), time.process_time()
     parts = m.prepared.step(index, x, u_prev)
     cpu = time.process_time() - cpu
     wall = time.perf_counter() - wall
-    if r < context.warmup:
+    if step < STEPS_PER_ROUND * context.warmup:
         return
     total = 1e3 * wall
     lcs, weighting, qp, proj = (1e3 * value for value in (
@@ -276,28 +291,39 @@ def _time_step(run: _Run, m: _Measurement, r: int, load: float, threads: int) ->
     executed = model if m.prepared.executed_flops is None else \
         m.prepared.executed_flops() / 1e6
     m.rows.append(_row(
-        run, m.config, repeat=r - context.warmup, state_index=index, total_ms=total,
-        lcs_ms=lcs, qp_ms=qp, proj_ms=proj, overhead_ms=max(total - known, 0.0),
-        cpu_ms=1e3 * cpu, iterations=iterations, ok=parts.ok,
-        cache_hits=parts.cache_hits, cache_misses=parts.cache_misses, note=m.note,
-        blas_threads=threads, load_avg=load, weighted=parts.weighted,
+        run, m.config, repeat=step - STEPS_PER_ROUND * context.warmup, state_index=index,
+        total_ms=total, lcs_ms=lcs, qp_ms=qp, proj_ms=proj,
+        overhead_ms=max(total - known, 0.0), cpu_ms=1e3 * cpu, iterations=iterations,
+        ok=parts.ok, cache_hits=parts.cache_hits, cache_misses=parts.cache_misses,
+        note=m.note, blas_threads=threads, load_avg=load, weighted=parts.weighted,
         weighting_ms=weighting, admm_ms=1e3 * parts.admm,
-        total_no_weighting_ms=total - weighting,
-        admm_mflop=model, admm_mflop_executed=executed))
+        total_no_weighting_ms=total - weighting, admm_mflop=model,
+        admm_mflop_executed=executed, cache=str(cache)))
+
+
+def _block_states(measurements: list[_Measurement]) -> tuple[CacheState, ...]:
+    """The cache state of each step of a block: cold then warm, or warm twice when only one
+    configuration is measured (nothing else runs between its steps)."""
+    if len(measurements) > 1:
+        return (CacheState.COLD, CacheState.WARM)
+    return (CacheState.WARM,) * STEPS_PER_ROUND
 
 
 def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: bool = False
                          ) -> None:
-    """Warm-up, then the timed steps of every configuration of one sample count in turn
-    (round ``r`` runs step ``r`` of each), so that a slow phase of a shared machine falls on
-    every backend alike. A backend that raises stops (its ``failure`` says why); the others
-    go on."""
+    """Warm-up, then the timed rounds of every configuration of one sample count: in round
+    ``r`` each configuration in turn runs a block of :data:`STEPS_PER_ROUND` consecutive steps
+    (module docstring), so that a slow phase of a shared machine falls on every backend alike
+    and each configuration has a cold and a warm step per round. A backend that raises stops
+    (its ``failure`` says why); the others go on."""
     from c3bench.solvers.timing import blas_threads, single_thread_blas
 
     warmup = run.context.warmup
     samples = measurements[0].config.samples if measurements else 0
-    bar = progress_bar(progress, sum(warmup + m.repeats for m in measurements),
+    bar = progress_bar(progress, STEPS_PER_ROUND * sum(warmup + m.repeats
+                                                       for m in measurements),
                        f"perf samples={samples}", "step")
+    states = _block_states(measurements)
     gc.collect()
     with single_thread_blas():
         threads, load = blas_threads(), load_average()
@@ -305,13 +331,16 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
             for m in measurements:
                 if m.failure is not None or r >= warmup + m.repeats:
                     continue
-                bar.update(1)
-                try:
-                    _time_step(run, m, r, load, threads)
-                except BackendUnavailable as error:
-                    m.failure = str(error)
-                except Exception as error:  # noqa: BLE001 (a backend that raises: skipped)
-                    m.failure = f"{m.failure_prefix}: {type(error).__name__}: {error}"
+                for offset, cache in enumerate(states):
+                    bar.update(1)
+                    try:
+                        _time_step(run, m, STEPS_PER_ROUND * r + offset, cache, load, threads)
+                    except BackendUnavailable as error:
+                        m.failure = str(error)
+                        break
+                    except Exception as error:  # noqa: BLE001 (a backend that raises: skipped)
+                        m.failure = f"{m.failure_prefix}: {type(error).__name__}: {error}"
+                        break
     bar.close()
     for m in measurements:
         compile_seconds = m.prepared.compile_seconds()
@@ -413,7 +442,7 @@ def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
         repeats, note = settings.repeats, ""
         if prepared.repeats is not None and prepared.repeats < settings.repeats:
             repeats, note = prepared.repeats, \
-                f"repeats cut to {prepared.repeats} ({prepared.note})"
+                f"rounds cut to {prepared.repeats} ({prepared.note})"
         measurements.append(_Measurement(config, prepared, repeats, note, spec.failure))
     _measure_interleaved(run, measurements, progress)
     for m in measurements:

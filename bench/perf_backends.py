@@ -28,6 +28,9 @@ WEIGHTING_WINDOW = 5
 """Observed transitions the LCP-error weighting looks back on (as the robust closed loop)."""
 REFERENCE_QP_BACKENDS: dict[str, str] = {"c3-osqp": "osqp", "c3-clarabel": "clarabel"}
 """Registry QP backend of each reference-controller row."""
+STEPS_PER_ROUND = 2
+"""Consecutive steps of one configuration per timed round of ``c3bench perf`` (one cold, one
+warm: :mod:`bench.perf`)."""
 REFERENCE_SAMPLES: tuple[int, ...] = (1, 16)
 """Sample counts the reference controller is measured at (``step`` and ``step_robust``)."""
 
@@ -98,7 +101,8 @@ class PreparedBackend:
 
     step: Step
     repeats: int | None = None
-    """At most this many timed steps (``None``: the settings' count)."""
+    """At most this many timed rounds (``None``: the settings' count; a round is
+    ``STEPS_PER_ROUND`` steps, :mod:`bench.perf`)."""
     note: str = ""
     """Noted on the rows when ``repeats`` cuts the settings' count."""
     compile_seconds: Callable[[], float] = field(default=_no_compile)
@@ -278,8 +282,9 @@ def reference_step(context: PerfContext, config: Configuration) -> Step:
 
 
 def make_reference(context: PerfContext, config: Configuration) -> PreparedBackend:
-    """``c3-osqp`` / ``c3-clarabel``: the reference controller, its repeats cut to fit
-    ``reference_budget`` seconds (one untimed step decides; a longer one skips)."""
+    """``c3-osqp`` / ``c3-clarabel``: the reference controller, its rounds (of
+    :data:`STEPS_PER_ROUND` steps, warm-up rounds included) cut to fit ``reference_budget``
+    seconds (one untimed step decides; a longer one skips)."""
     from c3bench.solvers import registry
     from c3bench.solvers.timing import single_thread_blas
 
@@ -298,7 +303,7 @@ def make_reference(context: PerfContext, config: Configuration) -> PreparedBacke
     budget = context.reference_budget
     if first > budget:
         raise BackendUnavailable(f"one control step took {first:.1f} s > budget {budget:g} s")
-    affordable = int(budget // max(first, 1e-9))
+    affordable = int(budget // max(first, 1e-9)) // STEPS_PER_ROUND
     repeats = max(1, affordable - context.warmup)
     return PreparedBackend(step, repeats=repeats, flop_model=False,
                            note=f"budget {budget:g} s")

@@ -14,17 +14,22 @@ import pandas as pd
 
 from c3bench.bench import perf_store, store
 from c3bench.bench.perf import PERF_FIGURE, REFERENCE_STEP_MS, TARGET_STEP_MS
+from c3bench.bench.perf_store import CacheState
 from c3bench.bench.perf_summary import format_ms, format_ratio, summarize
+
+CACHE_ORDER: tuple[str, ...] = (CacheState.WARM.value, CacheState.COLD.value)
+"""Order of the cache states in the table and the targets."""
 
 FAST_BACKENDS: tuple[str, ...] = ("c3plus-riccati", "c3plus-compiled", "c3plus-jax")
 TABLE_HEADER: tuple[str, ...] = (
-    "backend", "precision", "device", "samples", "n", "step ms", "p95 ms", "w/o weighting",
+    "backend", "precision", "device", "samples", "cache", "n", "step ms", "p95 ms", "w/o weighting",
     "lcs", "weighting", "admm", "qp", "proj", "overhead", "GFLOP/s", "% matmul",
     "t / riccati (step, admm)", "t / osqp (step, admm)", "load", "note")
 
 
 def _at(summary: pd.DataFrame, backend: str, samples: int, column: str,
         precision: str = "float64") -> float:
+    """``column`` of one configuration in ``summary`` (one cache state), NaN if absent."""
     rows = summary[(summary["backend"] == backend) & (summary["samples"] == samples)
                    & (summary["precision"] == precision) & (summary["repeats"] > 0)]
     return float(rows[column].iloc[0]) if len(rows) else math.nan
@@ -35,7 +40,19 @@ def _verdict(ok: bool) -> str:
 
 
 def target_lines(summary: pd.DataFrame) -> list[str]:
-    """The issue's targets (ratios within the run) for each fast backend measured at 16."""
+    """The issue's targets (ratios within the run) for each fast backend measured at 16, in
+    each cache state measured (:class:`bench.perf_store.CacheState`)."""
+    lines = []
+    for cache in CACHE_ORDER:
+        rows = summary[summary["cache"] == cache]
+        if len(rows):
+            lines += [line.replace("- ", f"- {cache} cache, ", 1)
+                      for line in _target_lines(rows)]
+    return lines
+
+
+def _target_lines(summary: pd.DataFrame) -> list[str]:
+    """:func:`target_lines` of one cache state."""
     lines = []
     for backend in FAST_BACKENDS:
         step16 = _at(summary, backend, 16, "median_ms")
@@ -79,7 +96,7 @@ def _table_row(s: pd.Series) -> str:
     share = 100 * s["rate_share"]
     cells = [
         str(s["backend"]), str(s["precision"]), str(s["device"]), str(s["samples"]),
-        str(s["repeats"]), format_ms(s["median_ms"]), format_ms(s["p95_ms"]),
+        str(s["cache"]), str(s["repeats"]), format_ms(s["median_ms"]), format_ms(s["p95_ms"]),
         format_ms(s["total_no_weighting_ms"]), format_ms(s["lcs_ms"]),
         format_ms(s["weighting_ms"]) if s["weighted"] else "-", format_ms(s["admm_ms"]),
         format_ms(s["qp_ms"]), "compiled" if jax else format_ms(s["proj_ms"]),
@@ -119,11 +136,19 @@ def run_lines(frame: pd.DataFrame) -> list[str]:
             "compiled kernel counts its own, which skip structural zeros; the flop model of "
             "bench/perf_flops.py for the numpy and JAX paths); "
             "`t / riccati`, `t / osqp` = median time over that of c3plus-riccati float64 and "
-            "c3-osqp at the same samples in this run (below 1 is faster). The reference "
+            "c3-osqp at the same samples and cache state in this run (below 1 is faster). "
+            "`cache`: each round runs two consecutive steps of each backend in turn; `cold` "
+            "is the first (it follows another backend's step, which has pushed this one's "
+            "code and data out of the core's caches), `warm` the second (it follows its own "
+            "step, as a controller with the core to itself between steps); small fast steps "
+            "lose most when cold. The reference "
             f"study's step: {REFERENCE_STEP_MS:g} ms (16 samples).", ""]
     lines.append("| " + " | ".join(TABLE_HEADER) + " |")
     lines.append("|" + "|".join("---" for _ in TABLE_HEADER) + "|")
-    lines += [_table_row(s) for _, s in summary[summary["repeats"] > 0].iterrows()]
+    timed = summary[summary["repeats"] > 0]
+    timed = timed.assign(_order=timed["cache"].map(CACHE_ORDER.index)).sort_values(
+        ["samples", "_order"], kind="stable")
+    lines += [_table_row(s) for _, s in timed.iterrows()]
     skipped = summary[summary["repeats"] == 0]
     if len(skipped):
         notes: dict[str, list[str]] = {}

@@ -6,14 +6,16 @@
 ``figures/perf_time_vs_samples.png`` the latest run of each machine. Versions, atomic writes and
 Parquet helpers are those of :mod:`bench.store`; the perf table's own layout is versioned
 beside them (:data:`PERF_SCHEMA_VERSION`: layout 2 added the weighting, ADMM-alone, flop-model,
-matmul-rate and compile-time columns, layout 3 the executed flops), and files of layouts 1
-and 2 are still read, their missing columns NaN (:func:`upgrade_perf_frame`).
+matmul-rate and compile-time columns, layout 3 the executed flops, layout 4 the cache state
+of each step), and files of layouts 1 to 3 are still read, their missing columns NaN
+(:func:`upgrade_perf_frame`).
 """
 
 from __future__ import annotations
 
 import math
 import re
+from enum import StrEnum
 from pathlib import Path
 
 import pandas as pd
@@ -33,12 +35,30 @@ from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.instance import atomic_write_bytes
 
 # --- perf: control-step times -----------------------------------------------------------------
-PERF_SCHEMA_VERSION = 3
+PERF_SCHEMA_VERSION = 4
 """Version of the perf table's own layout (beside :data:`SCHEMA_VERSION`, which every table
 of :mod:`bench.store` carries): 1 without the columns of :data:`PERF_V2_COLUMNS`, 2 with
-them but ``admm_mflop_executed``, 3 with all of them. Stored in the ``perf_schema_version``
-column and the Parquet metadata key :data:`PERF_METADATA_KEY`; a file of layout 1 (neither)
-or 2 is read with the columns it lacks NaN (``False`` for ``weighted``)."""
+them but ``admm_mflop_executed`` and ``cache``, 3 without ``cache``, 4 with all of them.
+Stored in the ``perf_schema_version`` column and the Parquet metadata key
+:data:`PERF_METADATA_KEY`; a file of layout 1 (neither) to 3 is read with the columns it
+lacks NaN (``False`` for ``weighted``, ``cache`` by :func:`old_cache_states`)."""
+
+
+class CacheState(StrEnum):
+    """What ran on the core just before a timed control step (``cache`` column).
+
+    ``c3bench perf`` times each configuration in blocks of two consecutive steps per round
+    (:mod:`bench.perf`): the first step of a block follows another configuration's step, whose
+    code and data have pushed this one's out of the core's caches (``COLD``; measured on the
+    2-core EPYC VM: flushing 64 MB before the compiled one-sample step costs it 0.16 ms of
+    ADMM and 0.4 ms of LCS build), the second follows this configuration's own step
+    (``WARM``, as a controller that has the core to itself between its steps). With one
+    configuration per sample count every step is ``WARM``.
+    """
+
+    COLD = "cold"
+    WARM = "warm"
+
 PERF_METADATA_KEY = b"c3bench_perf_schema"
 PERF_SCHEMA: tuple[Column, ...] = (
     Column("schema_version", "int64", ":data:`SCHEMA_VERSION`."),
@@ -86,20 +106,40 @@ PERF_SCHEMA: tuple[Column, ...] = (
            "in millions: the compiled kernel's own count (fewer than the model's: Cholesky, "
            "symmetric products, structural zeros skipped), the flop model's for the numpy and "
            "JAX paths; NaN for the reference controller and in layouts 1-2."),
+    # layout 4
+    Column("cache", "str", "cold: the step follows another configuration's step; warm: it "
+           "follows a step of its own configuration (:class:`CacheState`; layouts 1-3: cold "
+           "when the run measured several configurations at that sample count)."),
 )
 PERF_COLUMNS: tuple[str, ...] = tuple(column.name for column in PERF_SCHEMA)
 PERF_V2_COLUMNS: tuple[str, ...] = PERF_COLUMNS[PERF_COLUMNS.index("perf_schema_version"):]
-"""Columns added by perf layouts 2 and 3 (filled with NaN, ``weighted`` ``False``, when an
-older file lacks them)."""
+"""Columns added by perf layouts 2 to 4 (filled with NaN, ``weighted`` ``False``, ``cache`` by
+:func:`old_cache_states`, when an older file lacks them)."""
 PERF_READABLE: tuple[int, ...] = (1, SCHEMA_VERSION)
 """Values of :data:`SCHEMA_VERSION` whose perf tables this c3bench reads (the perf table's own
 changes are versioned by :data:`PERF_SCHEMA_VERSION`)."""
 
 
+def old_cache_states(frame: pd.DataFrame) -> pd.Series:
+    """The cache state of the rows of a table from before layout 4, which timed the
+    configurations of one sample count round-robin one step at a time: ``cold`` where the run
+    timed several configurations at that sample count (every step followed another one's),
+    ``warm`` where it timed one, ``""`` on skipped rows (as layout 4 stores them)."""
+    skipped = frame["skipped"].astype(bool)
+    timed = frame[~skipped]
+    configurations = timed.groupby(["run_id", "samples"])[
+        ["backend", "precision", "device"]].apply(lambda g: len(g.drop_duplicates()))
+    several = {key for key, count in configurations.items() if count > 1}
+    return pd.Series(["" if skip else CacheState.COLD.value if (run, samples) in several
+                      else CacheState.WARM.value for run, samples, skip in zip(
+                          frame["run_id"], frame["samples"], skipped, strict=True)],
+                     index=frame.index, dtype=object)
+
+
 def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
-    """The rows of a stored perf table in the current layout: a layout-1 or -2 table gets the
-    columns of :data:`PERF_V2_COLUMNS` it lacks (NaN, ``weighted`` ``False``; a file without
-    a layout is version 1); a newer
+    """The rows of a stored perf table in the current layout: a table of layouts 1 to 3 gets
+    the columns of :data:`PERF_V2_COLUMNS` it lacks (NaN, ``weighted`` ``False``, ``cache`` by
+    :func:`old_cache_states`; a file without a layout is version 1); a newer
     layout than :data:`PERF_SCHEMA_VERSION` raises :class:`SchemaVersionError`."""
     frame = frame.copy()
     if "perf_schema_version" not in frame.columns:
@@ -113,6 +153,9 @@ def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
     for name in PERF_V2_COLUMNS:
         if name not in frame.columns:
             frame[name] = False if name == "weighted" else math.nan
+    if "cache" in frame.columns and frame["cache"].isna().any():
+        frame["cache"] = frame["cache"].astype(object).where(frame["cache"].notna(),
+                                                            old_cache_states(frame))
     return frame
 
 

@@ -1,8 +1,11 @@
 """Summaries of ``c3bench perf`` rows: medians per configuration, the achieved GFLOP/s and its
 share of the run's matmul rate, and the ratios to other backends of the same run.
 
-**Ratios** (:func:`add_ratios`): per run, host, precision-free reference and number of
-samples, ``ratio_riccati = median / median(c3plus-riccati, float64)`` and ``ratio_osqp =
+Configurations are summarised per cache state (``cache``, :class:`bench.perf_store.CacheState`:
+``cold`` steps follow another configuration's, ``warm`` ones their own).
+
+**Ratios** (:func:`add_ratios`): per run, host, cache state and number of samples,
+``ratio_riccati = median / median(c3plus-riccati, float64)`` and ``ratio_osqp =
 median / median(c3-osqp)`` of the whole step (``total_ms``), and ``admm_ratio_*`` the same of
 the ADMM alone (``admm_ms``); below 1 is faster. NaN when the reference configuration was
 not measured in that run: machines differ by 2-4x, so only ratios within one run compare.
@@ -23,7 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-CONFIG_KEYS: tuple[str, ...] = ("backend", "precision", "device", "samples")
+CONFIG_KEYS: tuple[str, ...] = ("backend", "precision", "device", "samples", "cache")
 RUN_KEYS: tuple[str, ...] = ("run_id", "host")
 RATIO_REFERENCES: dict[str, tuple[str, str]] = {"riccati": ("c3plus-riccati", "float64"),
                                                 "osqp": ("c3-osqp", "float64")}
@@ -96,7 +99,8 @@ def summarize(frame: pd.DataFrame) -> pd.DataFrame:
 def add_ratios(summary: pd.DataFrame) -> pd.DataFrame:
     """``summary`` with ``ratio_<name>`` (median / reference median) and
     ``admm_ratio_<name>`` (ADMM alone) for each of :data:`RATIO_REFERENCES`, within each run
-    and host at the same number of samples; NaN where the reference was not measured."""
+    and host at the same number of samples and cache state; NaN where the reference was not
+    measured."""
     summary = summary.copy()
     for name, (backend, precision) in RATIO_REFERENCES.items():
         for column, target in (("median_ms", f"ratio_{name}"), ("admm_ms", f"admm_ratio_{name}")):
@@ -107,6 +111,7 @@ def add_ratios(summary: pd.DataFrame) -> pd.DataFrame:
                                 & (summary["backend"] == backend)
                                 & (summary["precision"] == precision)
                                 & (summary["samples"] == row["samples"])
+                                & (summary["cache"] == row["cache"])
                                 & (summary["repeats"] > 0)]
                 reference = float(match[column].iloc[0]) if len(match) else math.nan
                 mine = float(row[column]) if row["repeats"] > 0 else math.nan
@@ -143,7 +148,8 @@ def format_summary_line(s: pd.Series) -> str:
         return f"{head} skipped: {s['note']}"
     jax = s["backend"] == "c3plus-jax"
     weighting = f"weighting {format_ms(s['weighting_ms'])}  " if s["weighted"] else ""
-    text = (f"{head} step median {format_ms(s['median_ms'])} ms (p95 {format_ms(s['p95_ms'])})  "
+    text = (f"{head} {s['cache']:<4} step median {format_ms(s['median_ms'])} ms (p95 "
+            f"{format_ms(s['p95_ms'])})  "
             f"w/o weighting {format_ms(s['total_no_weighting_ms'])}  "
             f"lcs {format_ms(s['lcs_ms'])}  {weighting}admm {format_ms(s['admm_ms'])} "
             f"({'qp+proj' if jax else 'qp'} {format_ms(s['qp_ms'])}, proj "

@@ -2,8 +2,9 @@
 
 Conventions of every figure (:mod:`bench.palette`): one fixed colour and marker per backend
 (its position in :data:`bench.perf.BACKENDS`, so the colour never depends on which backends a
-run measured), float32 dashed, one legend to the right of the panels (never on the data),
-``n = ...`` timed steps in every panel's title.
+run measured), float32 dashed, cache-cold steps hollow and faded beside the warm ones, one
+legend to the right of the panels (never on the data), ``n = ...`` timed steps in every
+panel's title.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from matplotlib.lines import Line2D
 from c3bench.bench import perf_store
 from c3bench.bench.palette import legend_outside, solver_style
 from c3bench.bench.perf import BACKENDS, REFERENCE_STEP_MS, TARGET_STEP_MS
+from c3bench.bench.perf_store import CacheState
 from c3bench.bench.perf_summary import summarize
 
 PANELS: tuple[tuple[str, str], ...] = (
@@ -49,9 +51,13 @@ def _n_range(summary: pd.DataFrame, column: str) -> str:
     return str(low) if low == high else f"{low}-{high}"
 
 
+COLD_ALPHA = 0.45
+"""Opacity of the cache-cold curves (hollow markers); warm ones are opaque, filled."""
+
+
 def _draw(ax: Axes, summary: pd.DataFrame, column: str, hosts: list[str]) -> None:
-    for (host, backend, precision, device), group in summary.groupby(
-            ["host", "backend", "precision", "device"], sort=False):
+    for (host, backend, precision, device, cache), group in summary.groupby(
+            ["host", "backend", "precision", "device", "cache"], sort=False):
         group = group.sort_values("samples")
         values = group[column].to_numpy(dtype=float)
         if not np.isfinite(values).any():
@@ -65,8 +71,11 @@ def _draw(ax: Axes, summary: pd.DataFrame, column: str, hosts: list[str]) -> Non
         if column == "median_ms":
             upper = group["p95_ms"].to_numpy(dtype=float) - values
             errors = [np.zeros_like(upper), upper]
+        cold = cache == CacheState.COLD
         ax.errorbar(group["samples"], values, yerr=errors, color=style.color, marker=marker,
-                    linestyle=linestyle, capsize=3, markersize=4, linewidth=1)
+                    linestyle=linestyle, capsize=3, markersize=4, linewidth=1,
+                    alpha=COLD_ALPHA if cold else 1.0,
+                    markerfacecolor="none" if cold else style.color)
 
 
 def _handles(summary: pd.DataFrame, hosts: list[str]) -> list[Line2D]:
@@ -80,6 +89,14 @@ def _handles(summary: pd.DataFrame, hosts: list[str]) -> list[Line2D]:
                               linestyle="--" if precision == "float32" else "-",
                               label=f"{backend} ({precision}, {device}{machine}), "
                                     f"n = {int(group['repeats'].min())}"))
+    caches = set(summary["cache"].astype(str))
+    if CacheState.WARM in caches:
+        handles.append(Line2D([], [], color="grey", marker="o", linestyle="-", markersize=4,
+                              label="warm cache (follows its own step): filled"))
+    if CacheState.COLD in caches:
+        handles.append(Line2D([], [], color="grey", marker="o", linestyle="-", markersize=4,
+                              markerfacecolor="none", alpha=COLD_ALPHA,
+                              label="cold cache (follows another backend's step): hollow"))
     handles.append(Line2D([], [], color="grey", linestyle="--", linewidth=1,
                           label=f"seed: {REFERENCE_STEP_MS:g} ms (16 samples)"))
     handles.append(Line2D([], [], color="grey", linestyle=":", linewidth=1,

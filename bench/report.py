@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import math
 import re
 from pathlib import Path
 from typing import Any
@@ -35,10 +34,6 @@ from c3bench.bench.metrics import (
 )
 from c3bench.bench.perf import (
     PERF_FIGURE,
-    REFERENCE_STEP_MS,
-    TARGET_STEP_MS,
-    format_ms,
-    summarize,
 )
 from c3bench.bench.plots import all_figures, ordered_settings
 from c3bench.bench.reference import AGREE_COST, REFERENCE_PLANS, load_references, summarise
@@ -397,87 +392,6 @@ def write_report(suite: str, results_dir: str | Path = "results", figures: bool 
 
 
 # --- perf: control-step time ------------------------------------------------------------------
-def _median_at(summary: pd.DataFrame, backend: str, samples: int,
-               precision: str = Precision.FLOAT64) -> float:
-    """The median control-step time of one configuration (NaN when not measured)."""
-    rows = summary[(summary["backend"] == backend) & (summary["samples"] == samples)
-                   & (summary["precision"] == precision) & (summary["repeats"] > 0)]
-    return float(rows["median_ms"].iloc[0]) if len(rows) else math.nan
-
-
-def _perf_targets(summary: pd.DataFrame) -> list[str]:
-    """One line per fast backend and precision: its 16-sample time against the targets."""
-    checks = []
-    for backend in ("c3plus-riccati", "c3plus-jax"):
-        for precision in Precision:
-            at16 = _median_at(summary, backend, 16, precision)
-            if not math.isfinite(at16):
-                continue
-            verdict = "met" if at16 <= TARGET_STEP_MS else "not met"
-            text = f"- {backend} ({precision}), 16 samples: median {format_ms(at16)} ms " \
-                   f"(target <= {TARGET_STEP_MS:g} ms: {verdict})"
-            osqp = _median_at(summary, "c3-osqp", 16)
-            if math.isfinite(osqp):
-                text += f"; {osqp / at16:.0f}x faster than c3-osqp at 16 samples (target >= 5x)"
-            at256 = _median_at(summary, backend, 256, precision)
-            if math.isfinite(at256):
-                ratio = at256 / at16
-                text += f"; 256 samples cost {ratio:.1f}x 16 samples (target < 8x: " \
-                        f"{'met' if ratio < 8 else 'not met'})"
-            checks.append(text + ".")
-    return checks
-
-
-def _perf_run_lines(frame: pd.DataFrame) -> list[str]:
-    """The description, table, skipped configurations and targets of one run."""
-    summary = summarize(frame)
-    lines: list[str] = []
-    if len(frame):
-        first = frame.iloc[0]
-        loads = frame["load_avg"].astype(float)
-        lines.append(
-            f"One C3+ control step (LCS build for all samples + {int(first['iterations'])} "
-            f"ADMM iterations, T = {int(first['horizon'])}, planar, geometric rho), wall "
-            f"clock, warm-up excluded, BLAS threads {int(frame['blas_threads'].max())}, cores "
-            f"{first['affinity']}, host "
-            f"{first['host']}, run {first['run_id']}, 1-minute load average "
-            f"{np.nanmin(loads):.2f}-{np.nanmax(loads):.2f} during the run. `overhead` = "
-            "total - lcs - qp - proj (Python, dual updates, warm start). "
-            "The reference study's step: "
-            f"{REFERENCE_STEP_MS:g} ms (16 samples).")
-        lines.append("")
-    header = ["backend", "precision", "device", "samples", "median ms", "p95 ms", "lcs",
-              "qp", "proj", "overhead", "overhead %", "cpu ms", "seed / median", "note"]
-    lines.append("| " + " | ".join(header) + " |")
-    lines.append("|" + "|".join("---" for _ in header) + "|")
-    for _, s in summary[summary["repeats"] > 0].iterrows():
-        speedup = REFERENCE_STEP_MS / s["median_ms"] if s["samples"] == 16 else math.nan
-        fraction = 100 * s["overhead_fraction"]
-        cells = [str(s["backend"]), str(s["precision"]), str(s["device"]), str(s["samples"]),
-                 format_ms(s["median_ms"]), format_ms(s["p95_ms"]), format_ms(s["lcs_ms"]),
-                 format_ms(s["qp_ms"]),
-                 "compiled" if s["backend"] == "c3plus-jax" else format_ms(s["proj_ms"]),
-                 format_ms(s["overhead_ms"]),
-                 f"{fraction:.0f}" if math.isfinite(fraction) else "-",
-                 format_ms(s["cpu_ms"]), f"{speedup:.3g}x" if math.isfinite(speedup) else "-",
-                 str(s["note"] or "")]
-        lines.append("| " + " | ".join(cells) + " |")
-    skipped = summary[summary["repeats"] == 0]
-    if len(skipped):
-        lines.append("")
-        notes: dict[str, list[str]] = {}
-        for _, s in skipped.iterrows():
-            label = f"{s['backend']} ({s['precision']}, {s['device']})"
-            notes.setdefault(f"{label}: {s['note']}", []).append(str(s["samples"]))
-        lines.append("Not measured: " + "; ".join(
-            f"{text} (samples {', '.join(counts)})" for text, counts in notes.items()) + ".")
-    lines.append("")
-    checks = _perf_targets(summary)
-    if checks:
-        lines.extend(["Targets:", "", *checks, ""])
-    return lines
-
-
 def perf_report_section(results_dir: str | Path, figure_link: str | None = None) -> str:
     """A Markdown section on the control-step time (reads ``<results_dir>/perf/``): the
     latest run of each machine, one table per machine, with the ratios to

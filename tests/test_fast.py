@@ -329,34 +329,3 @@ def test_lcs_batch_is_read_only_with_identity(push: SimpleNamespace) -> None:
     with pytest.raises(ValueError):
         a.A[0, 0, 0] = 1.0
     assert a.repeat(3).n_samples == 3
-
-
-# --- the perf benchmark (output and schema only; timings are never checked) ---------------------
-def test_perf_writes_rows_files_figure_and_report(tmp_path: Path) -> None:
-    from c3bench.bench.perf import PerfSettings, run_perf
-    from c3bench.bench.perf_store import PERF_COLUMNS as COLUMNS
-    from c3bench.bench.perf_store import read_perf
-    from c3bench.bench.report import perf_report_section
-
-    settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3-clarabel"),
-                            repeats=2, warmup=1, iterations=2, results_dir=tmp_path)
-    lines: list[str] = []
-    frame = run_perf(settings, echo=lines.append)
-    assert list(frame.columns) == list(COLUMNS)
-    timed = frame[~frame["skipped"]]
-    assert set(timed["backend"]) == {"c3plus-riccati", "c3-clarabel"}
-    assert len(timed) == 2 * 2 + 2  # riccati at 1 and 2 samples, clarabel at 1
-    assert timed["ok"].all()
-    assert (timed["overhead_ms"] >= 0).all() and (timed["blas_threads"] == 1).all()
-    parts = (timed["lcs_ms"] + timed["weighting_ms"] + timed["qp_ms"] + timed["proj_ms"]
-             + timed["overhead_ms"])
-    np.testing.assert_allclose(parts, timed["total_ms"], rtol=1e-9)
-    skipped = frame[frame["skipped"]]
-    assert len(skipped) == 1 and "samples" in skipped["note"].iloc[0]
-    assert any("c3plus-riccati" in line and "median" in line for line in lines)
-    assert (tmp_path / "perf" / "perf.csv").exists()
-    assert (tmp_path / "perf" / "figures" / "perf_time_vs_samples.png").stat().st_size > 0
-    assert len(read_perf(tmp_path)) == len(frame)
-    section = perf_report_section(tmp_path)
-    assert section.startswith("## Control-step time") and "| c3plus-riccati |" in section
-    assert "No measurement" in perf_report_section(tmp_path / "missing")

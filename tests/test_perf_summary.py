@@ -17,7 +17,7 @@ from c3bench.problems.errors import SchemaVersionError
 
 def _rows(run: str, backend: str, samples: int, totals: list[float], admm: list[float],
           precision: str = "float64", mflop: float = math.nan,
-          executed: float | None = None) -> list[dict[str, object]]:
+          executed: float | None = None, cache: str = "warm") -> list[dict[str, object]]:
     rows = []
     for repeat, (total, step_admm) in enumerate(zip(totals, admm, strict=True)):
         row: dict[str, object] = {name: math.nan for name in perf_store.PERF_COLUMNS}
@@ -29,7 +29,7 @@ def _rows(run: str, backend: str, samples: int, totals: list[float], admm: list[
                    admm_mflop_executed=mflop if executed is None else executed,
                    matmul_gflops_f64=10.0, matmul_gflops_f32=20.0, load_avg=0.5,
                    iterations=10, horizon=7, cache_hits=-1, cache_misses=-1,
-                   blas_threads=1, affinity="0", perf_schema_version=3)
+                   blas_threads=1, affinity="0", perf_schema_version=4, cache=cache)
         rows.append(row)
     return rows
 
@@ -70,9 +70,45 @@ def test_ratios_are_within_one_run_and_the_same_samples() -> None:
     assert compiled["gflops"] == pytest.approx(8.0) and compiled["admm_mflop"] == 20.0
 
 
+def test_cold_and_warm_steps_are_summarised_and_compared_apart() -> None:
+    """A cold step is compared with the reference's cold steps, a warm one with its warm
+    ones: the compiled kernel is 4x riccati warm and 2x cold here, never 8x or 1x."""
+    rows = (_rows("r", "c3plus-riccati", 16, [8.0, 8.0], [8.0, 8.0])
+            + _rows("r", "c3plus-riccati", 16, [10.0, 10.0], [10.0, 10.0], cache="cold")
+            + _rows("r", "c3plus-compiled", 16, [2.0, 2.0], [2.0, 2.0])
+            + _rows("r", "c3plus-compiled", 16, [5.0, 5.0], [5.0, 5.0], cache="cold"))
+    summary = summarize(pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS)))
+    compiled = summary[summary["backend"] == "c3plus-compiled"].set_index("cache")
+    assert compiled.loc["warm", "ratio_riccati"] == pytest.approx(0.25)
+    assert compiled.loc["cold", "admm_ratio_riccati"] == pytest.approx(0.5)
+    assert (summary["repeats"] == 2).all() and len(summary) == 4
+    from c3bench.bench.perf_report import target_lines
+
+    lines = target_lines(summary)
+    assert [line.split(",")[0] for line in lines] == [
+        "- warm cache", "- warm cache", "- cold cache", "- cold cache"]
+    assert "ADMM at 16: 4x riccati" in lines[1] and "ADMM at 16: 2x riccati" in lines[3]
+
+
+def test_layout_three_rows_get_their_cache_state(tmp_path: Path) -> None:
+    """Before layout 4 every step of a run that timed several configurations at a sample
+    count followed another configuration's step (cold); a lone configuration's steps are
+    warm; skipped rows have none."""
+    frame = _frame().drop(columns=["cache"]).assign(perf_schema_version=3)
+    skipped = frame.iloc[:1].assign(skipped=True, samples=64, backend="c3-osqp")
+    frame = pd.concat([frame, skipped], ignore_index=True)
+    read = perf_store.upgrade_perf_frame(frame, tmp_path / "x.parquet")
+    keys = zip(read["run_id"], read["samples"], read["skipped"], strict=True)
+    states = dict(zip(keys, read["cache"], strict=True))
+    assert states[("r1", 16, False)] == "cold"  # riccati f64/f32, compiled and osqp at 16
+    assert states[("r1", 1, False)] == "warm"  # riccati alone at one sample
+    assert states[("r2", 16, False)] == "warm" and states[("r1", 64, True)] == ""
+
+
 def test_ratios_are_nan_without_the_reference() -> None:
     summary = pd.DataFrame({"run_id": ["a"], "host": ["h"], "backend": ["x"],
-                            "precision": ["float64"], "samples": [4], "repeats": [3],
+                            "precision": ["float64"], "samples": [4], "cache": ["warm"],
+                            "repeats": [3],
                             "median_ms": [2.0], "admm_ms": [1.0]})
     out = add_ratios(summary)
     assert out[["ratio_riccati", "ratio_osqp", "admm_ratio_riccati"]].isna().all().all()
@@ -96,6 +132,7 @@ def test_layout_one_files_are_read_with_nan_columns(tmp_path: Path) -> None:
     assert list(read.columns) == list(perf_store.PERF_COLUMNS)
     assert (read["perf_schema_version"] == 1).all() and not read["weighted"].any()
     assert read["admm_ms"].isna().all() and read["matmul_gflops_f64"].isna().all()
+    assert set(read["cache"]) == {"cold", "warm"}
     np.testing.assert_array_equal(read["total_ms"], frame["total_ms"])
     csv = perf_store.perf_files(tmp_path)[1]
     (store.perf_dir(tmp_path) / "perf.parquet").unlink()
