@@ -307,8 +307,8 @@ def _add_perf(sub: Any) -> None:
                       help="device of the JAX backend; the others run on the CPU "
                            "(default: cpu)")
     perf.add_argument("--repeats", type=positive_int, default=defaults.repeats, metavar="N",
-                      help=f"timed rounds, each a block of two consecutive control steps "
-                           f"(the first stored cache-cold, the second warm) per backend "
+                      help=f"timed rounds, each a block of four consecutive control steps "
+                           f"per backend (the first stored cache-cold, the others warm) "
                            f"(default: {defaults.repeats})")
     perf.add_argument("--warmup", type=nonnegative_int, default=defaults.warmup, metavar="N",
                       help=f"untimed rounds first (default: {defaults.warmup})")

@@ -45,23 +45,25 @@ flops per second) and its share of the matmul rate.
 **Ratios** (:mod:`bench.perf_summary`): each configuration's median time over that of
 ``c3plus-riccati`` float64 and of ``c3-osqp`` at the same samples in the same run.
 
-**Interleaved, in blocks of two.** For each sample count every backend is prepared, then
-the steps go round-robin in *rounds*: in round ``r`` each backend in turn runs a block of two
-consecutive control steps (the next two states of its sequence, warm-started as ever), so that
-a slow phase of a shared machine falls on every backend alike and the ratios compare like with
-like (measured: timing the backends one after another, the first one ran in a slow phase and
-its LCS build, the same code for every backend, took 1.4-2.2 times as long as the next
-backend's, which made the compiled kernel look 1.6 times faster than it is). The first step
-of a block is stored as ``cache = cold`` (it follows another backend's step, which has pushed
-this one's code and data out of the core's caches), the second as ``warm`` (it follows its
-own step, as a controller with the core to itself between steps):
-:class:`bench.perf_store.CacheState`. The two are summarised apart and every ratio compares
-like with like (cold with cold, warm with warm); they differ most for small, fast steps
-(measured on the 2-core EPYC VM: the compiled one-sample step 1.25 ms cold, 0.65 ms warm;
-the numpy one 3.9 and 3.3 ms). With one configuration at a sample count every step is warm.
-``repeats`` is the number of timed rounds (so ``repeats`` steps in each cache state), after
-``warmup`` rounds (default 2) that are not recorded. A progress bar (stderr) counts the
-steps of each sample count.
+**Interleaved, in blocks.** For each sample count every backend is prepared, then the steps
+go round-robin in *rounds*: in round ``r`` each backend in turn runs a block of
+:data:`~bench.perf_backends.STEPS_PER_ROUND` (4) consecutive control steps (the next states
+of its sequence, warm-started as ever), so that a slow phase of a shared machine falls on every
+backend alike and the ratios compare like with like (measured: timing the backends one after
+another, the first one ran in a slow phase and its LCS build, the same code for every backend,
+took 1.4-2.2 times as long as the next backend's, which made the compiled kernel look 1.6
+times faster than it is). The first step of a block is stored as ``cache = cold``: it follows
+another backend's step, which has pushed this one's code and data out of the core's caches.
+The other three are ``warm``: they follow its own steps, as in a closed loop, where only the
+plant runs between two control steps. Four, because a step needs about three of its own
+before it settles (measured on the 2-core EPYC VM, ADMM of the compiled one-sample step after a
+reference controller's step: 0.45, 0.36, 0.35, 0.32, 0.32 ms; numpy 2.81, 2.70, 2.64, 2.60,
+2.56 ms), and the settled time is what a controller pays in its loop (the same step with 50
+plant steps before each: 0.29 and 2.59 ms). Cold and warm steps are summarised apart and every
+ratio compares like with like (cold with cold, warm with warm). With one configuration at a
+sample count every step is warm. ``repeats`` is the number of timed rounds, after ``warmup``
+rounds (default 1) that are not recorded. A progress bar (stderr) counts the steps of each
+sample count.
 
 Warm-up rounds are excluded; BLAS is pinned to one thread (threadpoolctl)
 during every measurement and the count is recorded; ``--cpu N`` pins the whole process to
@@ -146,8 +148,8 @@ class PerfSettings:
     backends: tuple[str, ...] = BACKENDS
     precisions: tuple[str, ...] = (Precision.FLOAT64,)
     device: str = "cpu"
-    repeats: int = 20
-    warmup: int = 2
+    repeats: int = 12
+    warmup: int = 1
     iterations: int = 10
     reference_budget: float = 60.0
     seed: int = 0
@@ -261,7 +263,7 @@ class _Measurement:
     config: Configuration
     prepared: PreparedBackend
     repeats: int
-    """Timed rounds (two steps each: one cold, one warm)."""
+    """Timed rounds (:data:`STEPS_PER_ROUND` steps each: the first cold, the others warm)."""
     note: str
     failure_prefix: str
     """Start of the skipped row's note when a step raises (:class:`BackendSpec` ``failure``)."""
@@ -302,11 +304,10 @@ def _time_step(run: _Run, m: _Measurement, step: int, cache: CacheState, load: f
 
 
 def _block_states(measurements: list[_Measurement]) -> tuple[CacheState, ...]:
-    """The cache state of each step of a block: cold then warm, or warm twice when only one
+    """The cache state of each step of a block: cold, then warm; warm throughout when only one
     configuration is measured (nothing else runs between its steps)."""
-    if len(measurements) > 1:
-        return (CacheState.COLD, CacheState.WARM)
-    return (CacheState.WARM,) * STEPS_PER_ROUND
+    first = CacheState.COLD if len(measurements) > 1 else CacheState.WARM
+    return (first,) + (CacheState.WARM,) * (STEPS_PER_ROUND - 1)
 
 
 def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: bool = False

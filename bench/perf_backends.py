@@ -28,9 +28,9 @@ WEIGHTING_WINDOW = 5
 """Observed transitions the LCP-error weighting looks back on (as the robust closed loop)."""
 REFERENCE_QP_BACKENDS: dict[str, str] = {"c3-osqp": "osqp", "c3-clarabel": "clarabel"}
 """Registry QP backend of each reference-controller row."""
-STEPS_PER_ROUND = 2
-"""Consecutive steps of one configuration per timed round of ``c3bench perf`` (one cold, one
-warm: :mod:`bench.perf`)."""
+STEPS_PER_ROUND = 4
+"""Consecutive steps of one configuration per round of ``c3bench perf`` (the first cold, the
+others warm: :mod:`bench.perf`)."""
 REFERENCE_SAMPLES: tuple[int, ...] = (1, 16)
 """Sample counts the reference controller is measured at (``step`` and ``step_robust``)."""
 

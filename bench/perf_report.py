@@ -137,11 +137,11 @@ def run_lines(frame: pd.DataFrame) -> list[str]:
             "bench/perf_flops.py for the numpy and JAX paths); "
             "`t / riccati`, `t / osqp` = median time over that of c3plus-riccati float64 and "
             "c3-osqp at the same samples and cache state in this run (below 1 is faster). "
-            "`cache`: each round runs two consecutive steps of each backend in turn; `cold` "
+            "`cache`: each round runs four consecutive steps of each backend in turn; `cold` "
             "is the first (it follows another backend's step, which has pushed this one's "
-            "code and data out of the core's caches), `warm` the second (it follows its own "
-            "step, as a controller with the core to itself between steps); small fast steps "
-            "lose most when cold. The reference "
+            "code and data out of the core's caches), `warm` the other three (they follow "
+            "its own steps, as in a closed loop, where only the plant runs between control "
+            "steps); small fast steps lose most when cold. The reference "
             f"study's step: {REFERENCE_STEP_MS:g} ms (16 samples).", ""]
     lines.append("| " + " | ".join(TABLE_HEADER) + " |")
     lines.append("|" + "|".join("---" for _ in TABLE_HEADER) + "|")

@@ -47,13 +47,13 @@ lacks NaN (``False`` for ``weighted``, ``cache`` by :func:`old_cache_states`).""
 class CacheState(StrEnum):
     """What ran on the core just before a timed control step (``cache`` column).
 
-    ``c3bench perf`` times each configuration in blocks of two consecutive steps per round
+    ``c3bench perf`` times each configuration in blocks of consecutive steps per round
     (:mod:`bench.perf`): the first step of a block follows another configuration's step, whose
     code and data have pushed this one's out of the core's caches (``COLD``; measured on the
     2-core EPYC VM: flushing 64 MB before the compiled one-sample step costs it 0.16 ms of
-    ADMM and 0.4 ms of LCS build), the second follows this configuration's own step
-    (``WARM``, as a controller that has the core to itself between its steps). With one
-    configuration per sample count every step is ``WARM``.
+    ADMM and 0.4 ms of LCS build), the others follow this configuration's own steps
+    (``WARM``, as a controller in its loop, where only the plant runs between its steps).
+    With one configuration per sample count every step is ``WARM``.
     """
 
     COLD = "cold"

@@ -24,14 +24,14 @@ def test_short_run_records_every_phase_and_ratio(tmp_path: Path) -> None:
     frame = run_perf(settings, echo=lines.append)
     assert list(frame.columns) == list(PERF_COLUMNS)
     timed = frame[~frame["skipped"].astype(bool)]
-    # two rounds of two steps each: riccati at 1 and 2 samples, clarabel at 1 only
-    assert len(timed) == 2 * 2 * 2 + 2 * 2 and timed["ok"].all()
+    # two rounds of four steps each: riccati at 1 and 2 samples, clarabel at 1 only
+    assert len(timed) == 2 * 4 * 2 + 2 * 4 and timed["ok"].all()
     both = timed[timed["samples"] == 1]
     assert both.groupby(["backend", "cache"]).size().to_dict() == {
-        ("c3-clarabel", "cold"): 2, ("c3-clarabel", "warm"): 2,
-        ("c3plus-riccati", "cold"): 2, ("c3plus-riccati", "warm"): 2}
+        ("c3-clarabel", "cold"): 2, ("c3-clarabel", "warm"): 6,
+        ("c3plus-riccati", "cold"): 2, ("c3plus-riccati", "warm"): 6}
     assert (timed[timed["samples"] == 2]["cache"] == "warm").all()  # riccati alone
-    assert list(both[both["backend"] == "c3plus-riccati"]["repeat"]) == [0, 1, 2, 3]
+    assert list(both[both["backend"] == "c3plus-riccati"]["repeat"]) == list(range(8))
     # phases: the whole step is LCS build + weighting + QP + projection + overhead
     parts = timed["lcs_ms"] + timed["weighting_ms"] + timed["qp_ms"] + timed["proj_ms"] \
         + timed["overhead_ms"]
@@ -96,9 +96,9 @@ def test_any_qp_backend_can_sit_inside_the_reference_controller() -> None:
 
 def test_backends_are_timed_interleaved_and_a_failing_one_is_skipped(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Every backend of one sample count is warmed up, then round ``r`` runs two consecutive
+    """Every backend of one sample count is warmed up, then round ``r`` runs four consecutive
     steps of each in turn (a slow phase of the machine falls on all alike; the first is
-    cache-cold, the second warm); a backend that raises mid-run becomes one skipped row and
+    cache-cold, the others warm); a backend that raises mid-run becomes one skipped row and
     the others keep their rows."""
     from c3bench.bench import perf_backends
     from c3bench.bench.perf_backends import BACKEND_TABLE, PreparedBackend, StepParts
@@ -122,19 +122,18 @@ def test_backends_are_timed_interleaved_and_a_failing_one_is_skipped(
     table = dict(BACKEND_TABLE)
     table["c3plus-riccati"] = dataclasses.replace(table["c3plus-riccati"], make=factory("a"))
     table["c3plus-compiled"] = dataclasses.replace(table["c3plus-compiled"],
-                                                   make=factory("b", fail_at=3))
+                                                   make=factory("b", fail_at=5))
     monkeypatch.setattr(perf_backends, "BACKEND_TABLE", table)
     settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3plus-compiled"),
                             repeats=3, warmup=1, iterations=1, results_dir=tmp_path)
     frame = run_perf(settings, echo=None)
     # one sample count after the other; within it, a and b alternate block by block (b stops
-    # at its fourth step)
-    assert calls[:6] == [("a", 1), ("a", 1), ("b", 1), ("b", 1), ("a", 1), ("a", 1)]
-    assert calls[6:12] == [("b", 1), ("b", 1), ("a", 1), ("a", 1), ("a", 1), ("a", 1)]
-    assert [name for name, _ in calls[12:]] == [name for name, _ in calls[:12]]
-    assert len(calls) == 24 and {n for _, n in calls[12:]} == {2}
+    # at its sixth step, the second of the first timed round)
+    names = [name for name, _ in calls]
+    assert names[:22] == ["a"] * 4 + ["b"] * 4 + ["a"] * 4 + ["b"] * 2 + ["a"] * 8
+    assert names[22:] == names[:22] and {n for _, n in calls[22:]} == {2}
     timed = frame[~frame["skipped"].astype(bool)]
-    assert (timed["backend"] == "c3plus-riccati").all() and len(timed) == 2 * 3 * 2
-    assert list(timed["cache"]) == ["cold", "warm"] * 6
+    assert (timed["backend"] == "c3plus-riccati").all() and len(timed) == 2 * 3 * 4
+    assert list(timed["cache"]) == ["cold", "warm", "warm", "warm"] * 6
     skipped = frame[frame["skipped"].astype(bool)]
     assert len(skipped) == 2 and skipped["note"].str.contains("FloatingPointError").all()

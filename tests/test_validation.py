@@ -528,7 +528,8 @@ def test_perf_keeps_every_run_and_reports_the_latest(tmp_path: Path,
     assert len(perf_store.perf_run_files(tmp_path)) == committed["run_id"].nunique() + 2
     latest = perf_store.latest_perf_runs(stored)
     this_host = latest[latest["run_id"] == new_runs[-1]]
-    assert len(this_host) == 2 and (this_host["backend"] == "c3plus-riccati").all()  # 1 round
+    assert len(this_host) == 4 and (this_host["backend"] == "c3plus-riccati").all()  # 1 round
+    assert (this_host["cache"] == "warm").all()  # nothing else ran between its steps
     section = perf_report_section(tmp_path)
     assert "earlier run(s) are kept" in section and new_runs[-1] in section
     csv = pd.read_csv(perf_store.perf_files(tmp_path)[1])
