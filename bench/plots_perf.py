@@ -78,6 +78,16 @@ def _draw(ax: Axes, summary: pd.DataFrame, column: str, hosts: list[str]) -> Non
                     markerfacecolor="none" if cold else style.color)
 
 
+def _counts(group: pd.DataFrame) -> str:
+    """Timed steps per point of one backend's curves, by cache state (``12 cold, 36 warm``)."""
+    parts = []
+    for cache in (CacheState.COLD, CacheState.WARM):
+        rows = group[group["cache"] == cache]
+        if len(rows):
+            parts.append(f"{int(rows['repeats'].min())} {cache}")
+    return ", ".join(parts) if parts else str(int(group["repeats"].min()))
+
+
 def _handles(summary: pd.DataFrame, hosts: list[str]) -> list[Line2D]:
     handles = []
     for (host, backend, precision, device), group in summary.groupby(
@@ -88,7 +98,7 @@ def _handles(summary: pd.DataFrame, hosts: list[str]) -> list[Line2D]:
         handles.append(Line2D([], [], color=style.color, marker=marker, markersize=4,
                               linestyle="--" if precision == "float32" else "-",
                               label=f"{backend} ({precision}, {device}{machine}), "
-                                    f"n = {int(group['repeats'].min())}"))
+                                    f"n = {_counts(group)}"))
     caches = set(summary["cache"].astype(str))
     if CacheState.WARM in caches:
         handles.append(Line2D([], [], color="grey", marker="o", linestyle="-", markersize=4,

@@ -168,3 +168,11 @@ def test_gpu_lines_show_ratios_to_the_compiled_cpu_kernel(tmp_path: Path) -> Non
     text = "\n".join(gpu_lines(tmp_path))
     assert "| c3plus-jax | gpu | NVIDIA H200 | float64 | 16 | 2 | 2.5 | 0.5 | 0.50 |" in text
     assert gpu_lines(tmp_path / "absent") == []
+
+
+def test_the_figure_legend_counts_steps_per_cache_state() -> None:
+    from c3bench.bench.plots_perf import _counts
+
+    group = pd.DataFrame({"cache": ["cold", "warm"], "repeats": [12, 36]})
+    assert _counts(group) == "12 cold, 36 warm"
+    assert _counts(group[group["cache"] == "warm"]) == "36 warm"
