@@ -51,13 +51,12 @@ def target_lines(summary: pd.DataFrame) -> list[str]:
     for cache in CACHE_ORDER:
         rows = summary[summary["cache"] == cache]
         if len(rows):
-            lines += [line.replace("- ", f"- {cache} cache, ", 1)
-                      for line in _target_lines(rows)]
+            lines += _target_lines(rows, f"{cache} cache, ")
     return lines
 
 
-def _target_lines(summary: pd.DataFrame) -> list[str]:
-    """:func:`target_lines` of one cache state."""
+def _target_lines(summary: pd.DataFrame, label: str) -> list[str]:
+    """:func:`target_lines` of one cache state, each line starting ``- <label><backend>``."""
     lines = []
     for backend in FAST_BACKENDS:
         step16 = _at(summary, backend, 16, "median_ms")
@@ -93,7 +92,7 @@ def _target_lines(summary: pd.DataFrame) -> list[str]:
             parts.append(f"ADMM at {100 * share:.1f} % of the matmul rate"
                          + (f" (>= 25 %: {_verdict(share >= 0.25)})"
                             if backend == "c3plus-compiled" else ""))
-        lines.append(f"- {backend}: " + "; ".join(parts) + ".")
+        lines.append(f"- {label}{backend}: " + "; ".join(parts) + ".")
     return lines
 
 

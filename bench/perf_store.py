@@ -127,9 +127,10 @@ def old_cache_states(frame: pd.DataFrame) -> pd.Series:
     ``warm`` where it timed one, ``""`` on skipped rows (as layout 4 stores them)."""
     skipped = frame["skipped"].astype(bool)
     timed = frame[~skipped]
-    configurations = timed.groupby(["run_id", "samples"])[
-        ["backend", "precision", "device"]].apply(lambda g: len(g.drop_duplicates()))
-    several = {key for key, count in configurations.items() if count > 1}
+    configurations = timed.drop_duplicates(
+        ["run_id", "samples", "backend", "precision", "device"]).groupby(
+        ["run_id", "samples"]).size()
+    several = set(configurations[configurations > 1].index)
     return pd.Series(["" if skip else CacheState.COLD.value if (run, samples) in several
                       else CacheState.WARM.value for run, samples, skip in zip(
                           frame["run_id"], frame["samples"], skipped, strict=True)],

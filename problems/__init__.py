@@ -29,9 +29,11 @@ CORE_MODULES: tuple[str, ...] = (
     "c3bench.problems.instance",
     "c3bench.problems.families",
     "c3bench.problems.capture",
+    "c3bench.problems.jit",
 )
-"""The plant-free core: these modules import only each other, the standard library and numpy
-(never MuJoCo, CasADi or a plant-side module)."""
+"""The plant-free core: these modules import only each other, the standard library, numpy and
+(:mod:`~c3bench.problems.jit`, the compiled kernels' one decorator) numba; never MuJoCo, CasADi
+or a plant-side module."""
 
 # Off-screen rendering: prefer EGL (headless; works with Mesa's software driver) when libEGL is
 # installed and the user chose no backend. MuJoCo reads this when it is first imported, so it is

@@ -33,22 +33,14 @@ section 2.2).
 
 from __future__ import annotations
 
-from typing import Any
-
-import numba
 import numpy as np
+
+from c3bench.problems.jit import jit
 
 __all__ = ["sample_lcs"]
 
 
-def _jit(function: Any) -> Any:
-    """``numba.njit(cache=True, fastmath=False, error_model="numpy")``: machine code cached on
-    disk, no reassociated sums, IEEE division (no zero-divisor test in the loops). The core
-    cannot import the solvers' helper of the same name (layers), hence this one."""
-    return numba.njit(cache=True, fastmath=False, error_model="numpy")(function)
-
-
-@_jit
+@jit
 def _matmul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     """``out = a @ b`` (2-d), sums in index order."""
     for i in range(a.shape[0]):
@@ -59,7 +51,7 @@ def _matmul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
             out[i, k] = total
 
 
-@_jit
+@jit
 def _point_jacobian(jacp: np.ndarray, jacr: np.ndarray, point: np.ndarray,
                     origin: np.ndarray, out: np.ndarray) -> None:
     """``J_p(x) = J_p0 + J_r x (x - p_0)`` column by column (3, nv)."""
@@ -71,7 +63,7 @@ def _point_jacobian(jacp: np.ndarray, jacr: np.ndarray, point: np.ndarray,
         out[2, v] = jacp[2, v] + (a0 * r1 - a1 * r0)
 
 
-@_jit
+@jit
 def _ball_cube(half: float, box_pos: np.ndarray, box_rot: np.ndarray, centre: np.ndarray,
                radius: float, near: np.ndarray, normal: np.ndarray) -> float:
     """Signed ball-box distance ``phi`` (what ``mj_geomDistance`` gives for a sphere and a
@@ -109,7 +101,7 @@ def _ball_cube(half: float, box_pos: np.ndarray, box_rot: np.ndarray, centre: np
     return float(sign * norm - radius)
 
 
-@_jit
+@jit
 def _contact_rows(j: int, half: float, corners_local: np.ndarray, cube_origin: np.ndarray,
                   cube_rot: np.ndarray, jacp_cube: np.ndarray, jacr_cube: np.ndarray,
                   ball_origin: np.ndarray, jacp_ball: np.ndarray, jacr_ball: np.ndarray,
@@ -162,7 +154,7 @@ def _contact_rows(j: int, half: float, corners_local: np.ndarray, cube_origin: n
         J_t[2 * contact, v], J_t[2 * contact + 1, v] = t_row, -t_row
 
 
-@_jit
+@jit
 def _spd_inverse(M: np.ndarray, out: np.ndarray) -> None:
     """``out = M^-1`` of a symmetric positive definite ``M`` through ``M = L L^T`` (Golub &
     Van Loan, *Matrix Computations*, 4th ed., algorithm 4.2.1): ``L^-1`` by forward
@@ -192,7 +184,7 @@ def _spd_inverse(M: np.ndarray, out: np.ndarray) -> None:
             out[a, b] = total
 
 
-@_jit
+@jit
 def _smooth_sample(inertia_shift: float, M_ref: np.ndarray, jacr_cube: np.ndarray,
                    Jq_ref: np.ndarray, Jv_ref: np.ndarray, Ju_ref: np.ndarray,
                    acceleration: np.ndarray, q0: np.ndarray, v0: np.ndarray, u: np.ndarray,
@@ -230,7 +222,7 @@ def _smooth_sample(inertia_shift: float, M_ref: np.ndarray, jacr_cube: np.ndarra
         d_v[a] = total
 
 
-@_jit
+@jit
 def _anitescu(dt: float, q0: np.ndarray, N: np.ndarray, N_pinv: np.ndarray, J_q: np.ndarray,
               J_v: np.ndarray, J_u: np.ndarray, d_v: np.ndarray, M_inv: np.ndarray,
               phi: np.ndarray, J_n: np.ndarray, J_t: np.ndarray, E_t: np.ndarray,
@@ -314,7 +306,7 @@ def _anitescu(dt: float, q0: np.ndarray, N: np.ndarray, N_pinv: np.ndarray, J_q:
         c[i] = gap / dt + dt * velocity - position / dt
 
 
-@_jit
+@jit
 def sample_lcs(dt: float, q0: np.ndarray, v0: np.ndarray, u: np.ndarray, N: np.ndarray,
                N_pinv: np.ndarray, Jq_ref: np.ndarray, Jv_ref: np.ndarray,
                Ju_ref: np.ndarray, acceleration: np.ndarray, M_ref: np.ndarray,

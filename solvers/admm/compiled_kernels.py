@@ -68,25 +68,14 @@ Sparse Linear Systems*, SIAM 2006, chapter 2).
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any, NamedTuple, TypeVar, cast
+from typing import Any, NamedTuple
 
-import numba
 import numpy as np
+
+from c3bench.problems.jit import jit
 
 __all__ = ["LANE_BLOCK", "Structure", "assemble", "factor_flops", "factorize_batch", "jit",
            "setup_flops", "structure"]
-
-F = TypeVar("F", bound=Callable[..., Any])
-
-
-def jit(function: F) -> F:
-    """``numba.njit(cache=True, fastmath=False, error_model="numpy")`` with the function's own
-    type for mypy. The numpy error model divides by IEEE rules instead of testing every divisor
-    for zero (a branch that keeps a loop from vectorising); every divisor here is a positive
-    pivot or scale."""
-    return cast(F, numba.njit(cache=True, fastmath=False, error_model="numpy")(function))
-
 
 def factor_flops(nx: int, nv: int, pattern: Structure | None = None) -> int:
     """Floating-point operations (2 per multiply-add) of one factorisation step of one
