@@ -17,6 +17,7 @@ Part of the plant-free core: imports neither MuJoCo nor CasADi.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -125,7 +126,12 @@ class HorizonLayout:
         raise KeyError(f"no block {str(block)!r} in this layout")
 
     def index(self, k: int, block: str) -> slice:
-        """Slice of ``block`` of step ``k`` in ``z`` (``k = T`` with block ``x`` is ``x_T``)."""
+        """Slice of ``block`` of step ``k`` in ``z`` (``k = T`` with block ``x`` is ``x_T``;
+        memoised: a controller asks for the same slices every control step)."""
+        return _layout_index(self, k, block)
+
+    def _index(self, k: int, block: str) -> slice:
+        """:meth:`index`, computed."""
         if k == self.horizon:
             if block != Block.X:
                 raise KeyError("only x exists at k = T")
@@ -157,3 +163,9 @@ class HorizonLayout:
         """The layout written by :meth:`to_json`."""
         return cls(nx=int(table["nx"]), nlam=int(table["nlam"]), nu=int(table["nu"]),
                    n_eta=int(table["n_eta"]), horizon=int(table["horizon"]))
+
+
+@lru_cache(maxsize=1024)
+def _layout_index(layout: HorizonLayout, k: int, block: str) -> slice:
+    """:meth:`HorizonLayout.index`, memoised (layouts are frozen, so hashable)."""
+    return layout._index(k, block)

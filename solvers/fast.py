@@ -230,7 +230,7 @@ class FastC3Plus:
                     out[index] = (factor, False)
         return [entry for entry in out if entry is not None]
 
-    def planned_rhos(self) -> list[dict[str, float]] | None:
+    def planned_rhos(self) -> Sequence[Mapping[str, float]] | None:
         """Every iteration's rho when the schedule does not depend on the data (geometric)."""
         return schedule_for(self.options).plan(self.options.rho0, self.options.admm_iterations)
 

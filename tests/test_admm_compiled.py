@@ -230,6 +230,39 @@ def test_start_reuses_buffers_and_refactorises(push: SimpleNamespace) -> None:
     assert kernel._planned is reused  # same shapes: the same preallocated arrays
 
 
+@pytest.mark.parametrize(("m", "n"), [(10, 1), (3, 3), (3, 13)])
+def test_padding_lanes_change_no_factor(m: int, n: int) -> None:
+    """Factorising ``m`` rho values for ``n`` samples with padding lanes (a group of one
+    block: its lanes rounded up to a multiple of LANE_PAD; more lanes: a last block that is
+    not a multiple) gives every real lane bit for bit what factorising one rho value at a
+    time into unpadded arrays gives, and the padding lanes leave ``failed`` alone."""
+    mpc, lcs, x0 = random_lcs_problem(n, seed=50 + n)
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None
+    kernel = CompiledC3PlusKernel(mpc)
+    kernel.start(lcs, x0, np.full(n, 1 / n), True, plan)
+    padded = kernel._allocate(m)
+    assert padded.Y.shape[-1] == (-(-m * n // kernels.LANE_PAD) * kernels.LANE_PAD
+                                  if m * n <= kernels.LANE_BLOCK else m * n)
+    assert padded.failed.shape == (m * n,)
+    kernel._factorize(plan[:m], padded)
+    for i in range(m):
+        single = kernel._allocate(1)
+        exact = type(single)(Y=single.Y[..., :n].copy(), L=single.L[..., :n].copy(),
+                             Sd=single.Sd[..., :n].copy(), D=single.D[..., :n].copy(),
+                             ABd=single.ABd[..., :n].copy(), failed=single.failed,
+                             slots=1, samples=n)
+        kernel._factorize(plan[i:i + 1], exact)
+        lanes = slice(i * n, (i + 1) * n)
+        for name in ("Y", "Sd", "D", "ABd"):
+            np.testing.assert_array_equal(getattr(padded, name)[..., lanes],
+                                          getattr(exact, name))
+        lower = np.tril(np.ones(padded.L.shape[1:3], dtype=bool))
+        np.testing.assert_array_equal(padded.L[:, lower][..., lanes], exact.L[:, lower])
+        np.testing.assert_array_equal(padded.failed[lanes], exact.failed)
+    assert np.all(padded.failed == -1)
+
+
 def test_indefinite_stage_hessian_raises(push: SimpleNamespace) -> None:
     mpc = push.mpc
     negative = MPC(Q=mpc.Q, R=-1e4 * np.eye(mpc.nu), Q_f=mpc.Q_f, x_target=mpc.x_target,

@@ -65,6 +65,7 @@ from c3bench.solvers.admm.compiled_factors import (
     rho_key,
 )
 from c3bench.solvers.admm.kernel import KernelFailure, PlanRun
+from c3bench.solvers.admm.schedules import is_frozen
 from c3bench.solvers.fast import RiccatiOptions
 
 __all__ = ["CompiledC3PlusKernel", "KernelFailure"]
@@ -187,7 +188,7 @@ class CompiledC3PlusKernel:
         x0 = np.asarray(x0, dtype=np.float64)
         if x0.shape != (self.nx,):
             raise InputError(f"x0 must have shape ({self.nx},), got {x0.shape}")
-        if not np.all(np.isfinite(x0)):
+        if not np.isfinite(x0).all():
             raise KernelFailure("invalid input", "x0 has non-finite entries", True)
         n = lcs.n_samples
         p = np.asarray(weights, dtype=np.float64)
@@ -200,11 +201,13 @@ class CompiledC3PlusKernel:
         self._vectors[0] = x0
         self._p = p.astype(self.dtype)
         self._shared = bool(shared_inputs)
-        self._plan = planned_rhos or ()  # as given: run_plan knows it by identity
-        self._plan_keys = [rho_key(rho) for rho in self._plan]
-        self._plan_index = {}
-        for i in range(len(self._plan) - 1, -1, -1):  # a repeated rho: its first place
-            self._plan_index[self._plan_keys[i]] = i
+        plan = planned_rhos or ()
+        if plan is not self._plan or not is_frozen(plan):  # a frozen plan's keys are known
+            self._plan_keys = [rho_key(rho) for rho in plan]
+            self._plan_index = {}
+            for i in range(len(plan) - 1, -1, -1):  # a repeated rho: its first place
+                self._plan_index[self._plan_keys[i]] = i
+        self._plan = plan  # as given: run_plan knows it by identity
         if self._plan:
             group = plan_group(n, len(self._plan))
             if self._planned is None or self._planned.shape != (group, n, self.mpc.horizon):

@@ -33,7 +33,9 @@ class CompiledFactors:
     ``Q_vv`` with the reciprocals of their diagonals on the diagonal (upper triangle 0),
     ``Sd`` (T, nx, m n), ``D`` (ny, m n), ``ABd`` (nx, ny + 1, m n) the scaled ``[A B_v
     d]``; ``failed`` (m n,): -1 or the time step whose Cholesky
-    factorisation failed.
+    factorisation failed. A group of at most one block has its lane axis rounded up to a
+    multiple of :data:`~c3bench.solvers.admm.compiled_kernels.LANE_PAD` (padding lanes,
+    worked but never read).
     """
 
     Y: np.ndarray
@@ -49,10 +51,12 @@ class CompiledFactors:
     def empty(cls, m: int, n: int, T: int, nx: int, nv: int, dtype: np.dtype[Any]
               ) -> CompiledFactors:
         lanes = m * n
+        if lanes <= kernels.LANE_BLOCK:  # room for the padding lanes of an in-place block
+            lanes = -(-lanes // kernels.LANE_PAD) * kernels.LANE_PAD
         return cls(Y=np.empty((T, nv, nx, lanes), dtype), L=np.zeros((T, nv, nv, lanes), dtype),
                    Sd=np.empty((T, nx, lanes), dtype), D=np.empty((nx + nv, lanes), dtype),
                    ABd=np.empty((nx, nx + nv + 1, lanes), dtype),
-                   failed=np.full(lanes, -1, np.int64), slots=m, samples=n)
+                   failed=np.full(m * n, -1, np.int64), slots=m, samples=n)
 
     @property
     def shape(self) -> tuple[int, ...]:

@@ -45,7 +45,7 @@ from c3bench.problems.families import weight_vector
 from c3bench.problems.mpc import HorizonLayout
 from c3bench.solvers.admm.kernel import Kernel, KernelFailure, PlanRun, StepInputs
 from c3bench.solvers.admm.options import WEIGHT_FLOOR, C3Options, Output, Stopping
-from c3bench.solvers.admm.schedules import Schedule, schedule_for
+from c3bench.solvers.admm.schedules import Schedule, is_frozen, schedule_for
 from c3bench.solvers.admm.solution import C3Iterate, C3Solution, C3Trace, FastTimings
 
 
@@ -81,7 +81,7 @@ def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -
     array = np.asarray(weights, dtype=float)
     if array.shape != (samples,):
         raise ValueError(f"weights must have shape ({samples},), got {array.shape}")
-    if not np.all(np.isfinite(array)) or np.any(array < 0) or array.sum() <= 0:
+    if not np.isfinite(array).all() or (array < 0).any() or array.sum() <= 0:
         raise ValueError("weights must be finite, >= 0 and not all zero")
     array = array / array.sum()
     array = np.maximum(array, floor * array.max())
@@ -104,7 +104,7 @@ def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
     shape = (samples, layout.horizon, layout.step_size)
     cold: tuple[np.ndarray, np.ndarray] | None = None
     if delta is None or w is None:  # a warm start (both given) builds no cold arrays
-        start = x0 if np.all(np.isfinite(x0)) else np.zeros(layout.nx)
+        start = x0 if np.isfinite(x0).all() else np.zeros(layout.nx)
         cold = cold_iterates(layout, start, samples, dtype)
     out = []
     for index, (name, given) in enumerate((("delta", delta), ("w", w))):
@@ -118,7 +118,7 @@ def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
         if array.shape != shape:
             raise ValueError(f"{name} must have shape {shape[1:]} or {shape}, "
                              f"got {array.shape}")
-        if not np.all(np.isfinite(array)):
+        if not np.isfinite(array).all():
             raise ValueError(f"{name} has non-finite entries")
         out.append(np.array(array, dtype=dtype))
     return out[0], out[1]
@@ -142,6 +142,9 @@ _RATIOS: dict[tuple[Any, ...], np.ndarray] = {}
 """Memoised ratio vectors of :func:`dual_ratio`."""
 _PLAN_RATIOS: dict[tuple[Any, ...], np.ndarray] = {}
 """Memoised ratio arrays of :func:`plan_ratios`."""
+_LAST_PLAN_RATIOS: dict[tuple[Any, ...], tuple[Sequence[Mapping[str, float]], np.ndarray]] = {}
+"""The last plan of :func:`plan_ratios` per sizes with its ratios (a frozen plan that comes
+back is known by identity, without hashing its items)."""
 
 
 def scale_dual(w: Any, ratio: Any) -> Any:
@@ -186,8 +189,11 @@ def plan_ratios(layout: HorizonLayout, plan: Sequence[Mapping[str, float]], resc
     ``plan[i + 1]`` when ``rescale`` and they differ, else ones (multiplying by 1 is exact).
     Memoised by (block sizes, dtype, rescale, the plan's items): the same array comes back
     for the same plan (read it, do not change it)."""
-    key = (layout.nx, layout.nlam, layout.nu, layout.n_eta, np.dtype(dtype).char, rescale,
-           *(tuple(rho.items()) for rho in plan))
+    sizes = (layout.nx, layout.nlam, layout.nu, layout.n_eta, np.dtype(dtype).char, rescale)
+    last = _LAST_PLAN_RATIOS.get(sizes)
+    if last is not None and last[0] is plan and is_frozen(plan):
+        return last[1]
+    key = (*sizes, *(tuple(rho.items()) for rho in plan))
     ratios = _PLAN_RATIOS.get(key)
     if ratios is None:
         ratios = np.ones((max(len(plan) - 1, 0), layout.step_size), dtype=dtype)
@@ -197,6 +203,9 @@ def plan_ratios(layout: HorizonLayout, plan: Sequence[Mapping[str, float]], resc
         if len(_PLAN_RATIOS) > 64:
             _PLAN_RATIOS.clear()
         _PLAN_RATIOS[key] = ratios
+    if len(_LAST_PLAN_RATIOS) > 16:
+        _LAST_PLAN_RATIOS.clear()
+    _LAST_PLAN_RATIOS[sizes] = (plan, ratios)
     return ratios
 
 
@@ -394,13 +403,12 @@ def _output(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any, 
             ok: bool, status: str, fallback: np.ndarray, force_limit: float
             ) -> tuple[np.ndarray, np.ndarray | None, bool, str]:
     """The applied input: ``u_0`` of ``delta`` or ``z``, averaged over shared samples, clipped."""
-    u = np.asarray(fallback, dtype=float).copy()
     if not ok or z_steps is None:
-        return u, None, ok, status
+        return np.array(fallback, dtype=float), None, ok, status
     u_slice = kernel.layout.index(0, "u")
     source = delta if options.output == Output.DELTA else z_steps
     first = np.asarray(source)[:, 0, u_slice].astype(np.float64)
     u_raw = inputs.weights @ first if inputs.shared_inputs else first
-    if not np.all(np.isfinite(u_raw)):
-        return u, None, False, "non-finite input"
-    return np.clip(u_raw, -force_limit, force_limit), u_raw, ok, status
+    if not np.isfinite(u_raw).all():
+        return np.array(fallback, dtype=float), None, False, "non-finite input"
+    return np.minimum(np.maximum(u_raw, -force_limit), force_limit), u_raw, ok, status

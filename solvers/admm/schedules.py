@@ -21,9 +21,9 @@ only), so a kernel can factorise the whole schedule at once.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from types import ModuleType
+from types import MappingProxyType, ModuleType
 from typing import Any
 
 import numpy as np
@@ -31,6 +31,17 @@ import numpy as np
 from c3bench.solvers.admm.options import C3Options, RhoScheduleName
 
 Rho = dict[str, float]
+
+
+class Plan(tuple[Mapping[str, float], ...]):
+    """A data-independent schedule's rho values, one read-only mapping per iteration (copies
+    of the given ones). A plan never changes, so what is derived from one (rho keys, dual
+    ratios, stacked constants) may be remembered by its identity (:func:`is_frozen`)."""
+
+    __slots__ = ()
+
+    def __new__(cls, rhos: Iterable[Mapping[str, float]]) -> Plan:
+        return super().__new__(cls, (MappingProxyType(dict(rho)) for rho in rhos))
 
 
 @dataclass(frozen=True)
@@ -55,7 +66,7 @@ class Schedule:
         prior = math.inf if previous is None else previous
         return self.scale(rho, float(self.multiplier(consensus, prior, dual)))
 
-    def plan(self, rho0: Mapping[str, float], iterations: int) -> list[Rho] | None:
+    def plan(self, rho0: Mapping[str, float], iterations: int) -> Plan | None:
         """Every iteration's rho when it does not depend on the data, else ``None``."""
         return None
 
@@ -70,26 +81,34 @@ class Geometric(Schedule):
                    xp: ModuleType = np) -> Any:
         return self.factor
 
-    def plan(self, rho0: Mapping[str, float], iterations: int) -> list[Rho] | None:
-        """``rho0 factor^i`` on the scheduled blocks for ``i < iterations`` (memoised: a
-        controller asks for the same plan every control step; each call gets its own
-        dicts)."""
+    def plan(self, rho0: Mapping[str, float], iterations: int) -> Plan | None:
+        """``rho0 factor^i`` on the scheduled blocks for ``i < iterations``, memoised: a
+        controller asks for the same plan every control step and gets the same read-only
+        object back, so that what is derived from a plan (rho keys, dual ratios) can be
+        remembered by identity."""
         key = (self, tuple(rho0.items()), iterations)
         plan = _PLANS.get(key)
         if plan is None:
             rho = {k: float(value) for k, value in rho0.items()}
-            plan = []
+            steps = []
             for _ in range(iterations):
-                plan.append(dict(rho))
+                steps.append(rho)
                 rho = self.scale(rho, self.factor)
+            plan = Plan(steps)
             if len(_PLANS) > 64:
                 _PLANS.clear()
             _PLANS[key] = plan
-        return [dict(rho) for rho in plan]
+        return plan
 
 
-_PLANS: dict[tuple[Any, ...], list[Rho]] = {}
+_PLANS: dict[tuple[Any, ...], Plan] = {}
 """Memoised plans of :meth:`Geometric.plan`."""
+
+
+def is_frozen(plan: Sequence[Mapping[str, float]] | None) -> bool:
+    """Whether ``plan`` cannot change (a :class:`Plan`, as :meth:`Geometric.plan` returns), so
+    that what is derived from it may be remembered by its identity."""
+    return isinstance(plan, Plan)
 
 
 @dataclass(frozen=True)
