@@ -92,7 +92,9 @@ class CompiledC3Plus:
     def bind(self, lcs: LCSBatch) -> None:
         """Use ``lcs`` for the next control step."""
         self._lcs = lcs
-        self.layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, self.mpc.horizon)
+        layout = self.layout
+        if (layout.nx, layout.nlam, layout.nu) != (lcs.nx, lcs.nlam, lcs.nu):  # else reused
+            self.layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, self.mpc.horizon)
 
     def start(self, inputs: StepInputs) -> None:
         """Box, state, weights and the plan (converting the LCS counts as ``factor``)."""

@@ -27,6 +27,7 @@ from c3bench.solvers.admm.loop import (
     initial_iterates,
     normalise_weights,
     run_admm,
+    shift_in_time,
     shift_warm_start,
 )
 from c3bench.solvers.admm.options import C3Options, DualWarmStart
@@ -128,10 +129,9 @@ class WarmStartController:
         if not self.options.warm_start or self.delta is None or self.w is None or \
                 self.delta.shape != shape:
             return None, None
-        delta, w = shift_warm_start(self.delta, self.w)
-        if self.options.warm_dual == DualWarmStart.ZERO:
-            w = np.zeros_like(w)
-        return delta, w
+        if self.options.warm_dual == DualWarmStart.ZERO:  # no shifted dual to throw away
+            return shift_in_time(self.delta), np.zeros(self.w.shape, self.w.dtype)
+        return shift_warm_start(self.delta, self.w)
 
     def record(self, solution: C3Solution) -> C3Solution:
         """Keep a successful step's iterates and input; drop them after a failure."""

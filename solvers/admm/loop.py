@@ -130,12 +130,15 @@ def shift_warm_start(delta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
     Arrays are (..., T, step size); ``out[..., k, :] = in[..., k + 1, :]`` for ``k < T - 1``
     and ``out[..., T - 1, :] = in[..., T - 1, :]``; the dtype is kept.
     """
-    out = []
-    for array in (np.asarray(delta), np.asarray(w)):
-        shifted = array.copy()
-        shifted[..., :-1, :] = array[..., 1:, :]
-        out.append(shifted)
-    return out[0], out[1]
+    return shift_in_time(delta), shift_in_time(w)
+
+
+def shift_in_time(array: np.ndarray) -> np.ndarray:
+    """One array of :func:`shift_warm_start`, shifted (a new array)."""
+    array = np.asarray(array)
+    shifted = array.copy()
+    shifted[..., :-1, :] = array[..., 1:, :]
+    return shifted
 
 
 _RATIOS: dict[tuple[Any, ...], np.ndarray] = {}
