@@ -141,6 +141,39 @@ def test_plan_ratios_are_the_loops_rescaling(push: SimpleNamespace) -> None:
     assert plan_ratios(layout, plan, False, np.float32).dtype == np.float32
 
 
+def test_a_frozen_plan_is_remembered_and_a_list_is_not(push: SimpleNamespace) -> None:
+    """The geometric schedule gives the same read-only :class:`Plan` for the same arguments,
+    so its ratios and the kernel's rho keys are remembered by identity; a plain list that is
+    changed in place between control steps gets fresh ratios and keys every time."""
+    from c3bench.solvers.admm.schedules import Geometric, Plan, is_frozen
+
+    options = C3Options()
+    schedule = Geometric(tuple(options.rho_blocks), 2.0)
+    plan = schedule.plan(options.rho0, 4)
+    assert isinstance(plan, Plan) and is_frozen(plan)
+    assert schedule.plan(dict(options.rho0), 4) is plan
+    with pytest.raises(TypeError):
+        plan[0]["lam"] = 1.0  # type: ignore[index]
+    solver = CompiledC3Plus(push.mpc, C3Options(keep_iterates=False))
+    solver.bind(push.batches[1])
+    layout = solver.layout
+    assert plan_ratios(layout, plan, True, np.float64) is plan_ratios(layout, plan, True,
+                                                                      np.float64)
+    listed = [dict(rho) for rho in plan]
+    assert not is_frozen(listed)
+    np.testing.assert_array_equal(plan_ratios(layout, listed, True, np.float64),
+                                  plan_ratios(layout, plan, True, np.float64))
+    assert not np.all(plan_ratios(layout, listed, True, np.float64)[0] == 1.0)
+    listed[1].update(listed[0])  # changed in place: no longer a change of rho
+    np.testing.assert_array_equal(plan_ratios(layout, listed, True, np.float64)[0], 1.0)
+    kernel, x0 = solver.kernel, push.x0
+    kernel.start(push.batches[1], x0, np.ones(1), True, listed)
+    keys = list(kernel._plan_keys)
+    listed[2]["eta"] = 7.0
+    kernel.start(push.batches[1], x0, np.ones(1), True, listed)
+    assert kernel._plan_keys != keys and kernel._plan_keys[2][3] == 7.0
+
+
 def test_new_limits_reach_the_projection(push: SimpleNamespace) -> None:
     """The solver sets its projection's box again when ``mpc.limits`` is replaced (it skips
     the work while the sizes, ``use_limits`` and the limits object stay the same)."""
