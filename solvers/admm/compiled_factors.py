@@ -52,7 +52,7 @@ class CompiledFactors:
               ) -> CompiledFactors:
         lanes = m * n
         if lanes <= kernels.LANE_BLOCK:  # room for the padding lanes of an in-place block
-            lanes = -(-lanes // kernels.LANE_PAD) * kernels.LANE_PAD
+            lanes = kernels.padded_lanes(lanes)
         return cls(Y=np.empty((T, nv, nx, lanes), dtype), L=np.zeros((T, nv, nv, lanes), dtype),
                    Sd=np.empty((T, nx, lanes), dtype), D=np.empty((nx + nv, lanes), dtype),
                    ABd=np.empty((nx, nx + nv + 1, lanes), dtype),

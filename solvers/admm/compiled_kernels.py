@@ -75,7 +75,7 @@ import numpy as np
 from c3bench.problems.jit import jit
 
 __all__ = ["LANE_BLOCK", "LANE_PAD", "Structure", "assemble", "factor_flops", "factorize_batch",
-           "jit", "setup_flops", "structure"]
+           "jit", "padded_lanes", "setup_flops", "structure"]
 
 def factor_flops(nx: int, nv: int, pattern: Structure | None = None) -> int:
     """Floating-point operations (2 per multiply-add) of one factorisation step of one
@@ -111,6 +111,12 @@ float64): the padding lanes repeat the block's first lane and are never read, so
 innermost loop ends in a scalar remainder (measured for one sample's 10 rho values: 91 us for
 10 lanes, 78 us for 12; the loops' fixed cost dominates at so few lanes). Their work is not
 counted in the executed flops."""
+
+
+@jit
+def padded_lanes(lanes: int) -> int:
+    """``lanes`` rounded up to a multiple of :data:`LANE_PAD` (the lanes a block works)."""
+    return -(-lanes // LANE_PAD) * LANE_PAD
 
 
 def structure(ABd_mask: np.ndarray) -> Structure:
@@ -182,7 +188,7 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     ny = nx + nv
     T = Y.shape[0]
     lanes = m * n
-    padded = -(-lanes // LANE_PAD) * LANE_PAD
+    padded = padded_lanes(lanes)
     LB = min(LANE_BLOCK, padded)
     dt = A.dtype
     Hy, S = np.empty((ny, ny, LB), dt), np.empty((nx, nx, LB), dt)
@@ -204,7 +210,7 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     Yb, Lb, Sdb = np.empty((nv, nx, LB), dt), np.zeros((nv, nv, LB), dt), np.empty((nx, LB), dt)
     for l0 in range(0, lanes, LB):
         nl = min(LB, lanes - l0)
-        worked = -(-nl // LANE_PAD) * LANE_PAD  # <= LB: LANE_BLOCK is a multiple of LANE_PAD
+        worked = padded_lanes(nl)  # <= LB: LANE_BLOCK is a multiple of LANE_PAD
         _lane_indices(l0, worked, lanes, n, li, lj)
         _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
                      worked, Hy, S, Db, ABb, sv)
