@@ -14,7 +14,9 @@ with numba (Lam, Pitrou & Seibert, "Numba: a LLVM-based Python JIT compiler", LL
 * the first iteration of each *group* of the plan (:func:`plan_group` rho values: at most
   one block of lanes, rho x sample pairs) factorises the whole group for every sample in ONE
   compiled call, in place in a preallocated buffer (lanes last), which stays in the core's
-  cache for the group's iterations;
+  cache for the group's iterations; its backward steps run as code generated for the batch's
+  structure (:mod:`.compiled_codegen`, bit for bit the lane loops' results) where there is
+  some;
 * :meth:`CompiledC3PlusKernel.step` runs the gradient, both linear passes, ``eta``, the
   projection of ``v = z + w``, (shared inputs, ``n > 1``) ``delta_u = sum_j p_j v_{j,u}``
   and the loop's dual update (:func:`c3bench.solvers.admm.loop.dual_update`, compiled) in
@@ -26,14 +28,12 @@ with numba (Lam, Pitrou & Seibert, "Numba: a LLVM-based Python JIT compiler", LL
   (:mod:`.compiled_plan`), which the loop uses for a geometric schedule with ``fixed``
   stopping and nothing recorded per iteration.
 
-JIT compilation happens once per process (and is cached on disk);
-:func:`c3bench.solvers.admm.compiled_solver.warm_up` compiles every signature (float64 and
-float32) on a tiny problem. ``compile_seconds`` is the JIT time spent in this process so far
-(the first call of each kernel and precision), so that step timings can exclude it.
-Measured: 43-53 s to compile everything from scratch (load average below 1 on 2 cores), 0.3-0.4
-s to load it from numba's disk cache. numba checks a cached function against its own source
-file only: after editing one kernel module, clear ``__pycache__/*.nb[ic]`` so that the
-functions calling it from other modules are compiled again.
+JIT compilation happens once per process, cached on disk (43-53 s from scratch on 2 cores,
+0.3-0.4 s from the cache; :func:`c3bench.solvers.admm.compiled_solver.warm_up` compiles every
+signature), the generated code once per structure and machine; ``compile_seconds`` is the time
+both took in this process, so that step timings can exclude it. numba checks a cached function
+against its own source file only: after editing one kernel module, clear
+``__pycache__/*.nb[ic]`` so that the functions calling it from other modules compile again.
 
 Differences from :class:`solvers.fast.FastC3Plus`: ``Q_vv`` is factorised by Cholesky (a
 ``Q_vv`` that is not positive definite raises :class:`KernelFailure`; numpy's inverse would
@@ -55,6 +55,7 @@ from c3bench.problems.errors import InputError
 from c3bench.problems.lcs import LCSBatch
 from c3bench.problems.mpc import MPC
 from c3bench.problems.names import Block, Precision
+from c3bench.solvers.admm import compiled_codegen as codegen
 from c3bench.solvers.admm import compiled_kernels as kernels
 from c3bench.solvers.admm import compiled_passes as passes
 from c3bench.solvers.admm import compiled_plan
@@ -148,16 +149,13 @@ class CompiledC3PlusKernel:
         self._rho_constants: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
         self._stacked: dict[tuple[tuple[float, ...], ...],
                             tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._sets: tuple[np.ndarray, np.ndarray] | None = None
-        """The two iterate sets of :meth:`run_plan` (``iterates``, ``terminals``)."""
+        self._sets: tuple[np.ndarray, np.ndarray] | None = None  # run_plan's iterate sets
         self._p = np.ones(1, self.dtype)
         self._structure_key: tuple[Any, ...] | None = None
         self._structures: OrderedDict[tuple[Any, ...], tuple[kernels.Structure, int, int]] = \
             OrderedDict()
         """Recent structures with their flop counts, by mask (:data:`STRUCTURE_CACHE`)."""
-        self._structure: kernels.Structure | None = None
-        """Structural nonzeros of the batch's ``[A B_v d]`` (:class:`kernels.Structure`), set
-        by :meth:`start`."""
+        self._structure: kernels.Structure | None = None  # the batch's, set by start()
         self._lane_flops = self._sample_flops = 0
         self.flops = 0.0
         """Floating-point operations executed since the last :meth:`start` (factorisations:
@@ -165,6 +163,7 @@ class CompiledC3PlusKernel:
         iterations: :func:`passes.solve_flops` per sample), over the structural nonzeros."""
         self._shared = False
         self._solve_compiled = False
+        self._steps_memo: tuple[tuple[Any, ...], np.ndarray] | None = None
 
     def set_box(self, box: tuple[np.ndarray, np.ndarray] | None) -> None:
         """The ``(lower, upper)`` box of one step's ``(x, u)`` (``None``: unbounded)."""
@@ -215,12 +214,9 @@ class CompiledC3PlusKernel:
 
     def iterate(self, rho: Mapping[str, float], delta: np.ndarray, w: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One QP step and projection: ``(z_steps (n, T, ns), z_terminal (n, nx),
-        new_delta (n, T, ns))`` in the working precision (new arrays every call).
-
-        Raises :class:`KernelFailure` when the factorisation of ``rho`` failed or the QP
-        solution is not finite.
-        """
+        """One QP step and projection: ``(z_steps (n, T, ns), z_terminal (n, nx), new_delta
+        (n, T, ns))``, new arrays; :class:`KernelFailure` when the factorisation of ``rho``
+        failed or the QP solution is not finite."""
         z_steps, z_terminal, new_delta, _ = self.step(rho, delta, w)
         return z_steps, z_terminal, new_delta
 
@@ -279,7 +275,8 @@ class CompiledC3PlusKernel:
             self._PT, self._ridge, bool(self.riccati.jacobi), self._zero, self._one,
             pattern.column_start, pattern.column_rows, pattern.row_start, pattern.row_columns,
             f.Y, f.L, f.Sd, f.D, f.ABd, f.failed, self._vectors, a["Mc"], a["Mt"], consts,
-            self._p, self._shared, self._box, ratios, iterates, terminals)
+            self._p, self._shared, self._box, ratios, iterates, terminals,
+            self._steps(f.shape[0], len(plan) % f.shape[0] or f.shape[0]))
         group, n = f.shape[0], len(self._p)
         attempted = min(completed + (code != 0), len(plan))  # the failed one included
         factorised = min(-(-attempted // group) * group, len(plan))  # whole groups
@@ -412,7 +409,7 @@ class CompiledC3PlusKernel:
         self._timed(kernels.factorize_batch, a["A"], a["Bv"], a["d"], a["MtM"], stacked[0],
                     stacked[1], self._PT, self._ridge, bool(self.riccati.jacobi), self._zero,
                     self._one, self.structure.column_start, self.structure.column_rows, out.Y,
-                    out.L, out.Sd, out.D, out.ABd, out.failed)
+                    out.L, out.Sd, out.D, out.ABd, out.failed, self._steps(len(rhos)))
         self.factor_seconds += time.perf_counter() - started
         self.flops += len(rhos) * a["A"].shape[2] * self._lane_flops
         return keys
@@ -457,6 +454,17 @@ class CompiledC3PlusKernel:
             self._rho_constants[key] = entry
         return entry
 
+    def _steps(self, *slots: int) -> np.ndarray:
+        """:func:`codegen.step_table` for ``slots`` rho values at a time (memoised)."""
+        memo = (self._structure_key, slots)
+        if self._steps_memo is None or self._steps_memo[0] != memo:
+            n, nx, nlam, nu = self._shape
+            lanes = [kernels.work_lanes(m * n) for m in slots]
+            self._steps_memo = (memo, codegen.step_table(
+                self.structure.column_start, self.structure.column_rows, nx, nlam + nu,
+                self.dtype, lanes, kernels.LANE_BLOCK + 1))
+        return self._steps_memo[1]
+
     @property
     def structure(self) -> kernels.Structure:
         """The structural nonzeros of the current batch's ``[A B_v d]`` (after :meth:`start`;
@@ -467,9 +475,9 @@ class CompiledC3PlusKernel:
 
     @property
     def compile_seconds(self) -> float:
-        """JIT time spent in this process so far (every kernel instance and
-        :func:`warm_up` together; exclude it from step timings)."""
-        return _JIT.seconds
+        """JIT and code-generation time spent in this process so far (every kernel instance,
+        :func:`warm_up` and :data:`codegen.CODEGEN` together; exclude it from step timings)."""
+        return _JIT.seconds + codegen.CODEGEN.seconds
 
     def _timed(self, function: Any, *args: Any) -> Any:
         """Call a compiled function; its first call in this process for this precision
@@ -486,8 +494,7 @@ class CompiledC3PlusKernel:
 
 @dataclass
 class _JitRecord:
-    """Process-wide JIT bookkeeping: kernels (by name and precision) already compiled, and
-    the seconds their first calls took."""
+    """Kernels (name, precision) compiled in this process and their first calls' seconds."""
 
     compiled: set[tuple[str, Precision]] = field(default_factory=set)
     seconds: float = 0.0

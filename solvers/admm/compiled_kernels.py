@@ -49,12 +49,15 @@ contiguous lanes from ``i n``, as vector lanes from its
 time). Small dense algebra (products, Cholesky, triangular solves) is written out by hand;
 nothing calls ``numpy.linalg``.
 
-Measured (planar cube, ``nx = nlam + nu = 10``, ``T = 7``, one core, load average below 1):
-one group of 2 rho values for 16 samples (32 lanes) takes 0.17-0.19 ms (0.19-0.22 copying
-the factors out of a work block, 0.30 ms dense, with ``K``), 10 rho values for one sample
-0.12 ms (0.15 copied out, 0.19 dense), one rho value for 64 samples 0.38 ms (0.42 with the
-earlier copy by runs of samples, 0.59 dense). :func:`factor_flops` counts what the loops
-execute.
+**Generated code.** The backward step, most of the work, is also generated as straight-line
+code for the batch's structure (:mod:`c3bench.solvers.admm.compiled_codegen`, bit for bit
+:func:`_riccati_lanes`'s results); :func:`factorize_batch` runs it wherever its ``steps``
+table has one, and these lane loops elsewhere.
+
+Measured (planar cube, ``nx = nlam + nu = 10``, ``T = 7``, one core, load average below 1,
+2-core EPYC VM): one group of 2 rho values for 16 samples (32 lanes) 0.15 ms with the lane
+loops, 0.065 ms with the generated step; 10 rho values for one sample 0.087 and 0.033 ms.
+:func:`factor_flops` counts what either executes.
 
 Every kernel takes its scalars in the arrays' dtype (``zero``, ``one`` and the rho-derived
 constants), so that float32 arrays are worked in float32 arithmetic throughout.
@@ -73,9 +76,10 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from c3bench.problems.jit import jit
+from c3bench.solvers.admm.compiled_codegen import call_step
 
 __all__ = ["LANE_BLOCK", "LANE_PAD", "Structure", "assemble", "factor_flops", "factorize_batch",
-           "jit", "padded_lanes", "setup_flops", "structure"]
+           "jit", "no_steps", "padded_lanes", "setup_flops", "structure", "work_lanes"]
 
 def factor_flops(nx: int, nv: int, pattern: Structure | None = None) -> int:
     """Floating-point operations (2 per multiply-add) of one factorisation step of one
@@ -119,6 +123,19 @@ def padded_lanes(lanes: int) -> int:
     return -(-lanes // LANE_PAD) * LANE_PAD
 
 
+@jit
+def work_lanes(lanes: int) -> int:
+    """The lane axis of :func:`factorize_batch`'s work arrays for ``lanes`` (rho value,
+    sample) pairs: the padded lanes of one in-place block, else :data:`LANE_BLOCK`."""
+    return min(LANE_BLOCK, padded_lanes(lanes))
+
+
+def no_steps() -> np.ndarray:
+    """A :func:`factorize_batch` ``steps`` table without generated code (the lane loops run
+    every step)."""
+    return np.zeros((LANE_BLOCK + 1, 2), np.int64)
+
+
 def structure(ABd_mask: np.ndarray) -> Structure:
     """The structural nonzeros of ``[A B_v d]`` (``ABd_mask`` (nx, ny + 1) bool: nonzero in any
     sample of the batch), by column and by row (:class:`Structure`)."""
@@ -160,7 +177,8 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
                     base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray,
                     ridge: Any, jacobi: bool, zero: Any, one: Any, column_start: np.ndarray,
                     column_rows: np.ndarray, Y: np.ndarray, L: np.ndarray, Sd: np.ndarray,
-                    D: np.ndarray, ABd: np.ndarray, failed: np.ndarray) -> None:
+                    D: np.ndarray, ABd: np.ndarray, failed: np.ndarray, steps: np.ndarray
+                    ) -> None:
     """Factorise ``m`` rho values for ``n`` samples (module docstring).
 
     Inputs (samples last): ``A`` (nx, nx, n), ``Bv`` (nx, nv, n), ``d`` (nx, n), ``MtM``
@@ -182,6 +200,12 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     More lanes are worked in blocks of :data:`LANE_BLOCK` in local arrays, each block copied
     into its lanes of the outputs (writing a block at an offset into the outputs directly
     measured 1.5-2.3 times slower: LLVM's vectoriser gives up on most of those loops).
+
+    ``steps`` (LANE_BLOCK + 1, 2) int64: row ``w`` the ``(address, width)`` of the backward
+    step generated for this structure and work arrays of ``w`` lanes
+    (:func:`c3bench.solvers.admm.compiled_codegen.step_table`; :func:`no_steps`: none), which
+    replaces :func:`_riccati_lanes` (bit for bit the same results) wherever the arrays it
+    writes have that many lanes and the lanes worked are a multiple of ``width``.
     """
     m, n = base.shape[0], A.shape[2]
     nx, nv = A.shape[0], Bv.shape[1]
@@ -189,7 +213,8 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     T = Y.shape[0]
     lanes = m * n
     padded = padded_lanes(lanes)
-    LB = min(LANE_BLOCK, padded)
+    LB = work_lanes(lanes)
+    address, width = steps[LB, 0], max(steps[LB, 1], 1)
     dt = A.dtype
     Hy, S = np.empty((ny, ny, LB), dt), np.empty((nx, nx, LB), dt)
     SAB, Qv = np.empty((nx, ny, LB), dt), np.empty((nv, ny, LB), dt)
@@ -201,9 +226,14 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
         _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
                      nl, Hy, S, D, ABd, sv)
         fb[:] = -1
+        generated = address != 0 and nl == LB and nl % width == 0 and \
+            Y.shape[3] == LB and L.shape[3] == LB and Sd.shape[2] == LB and ABd.shape[2] == LB
         for k in range(T - 1, -1, -1):
-            _riccati_lanes(k, nl, nx, nv, zero, one, S, ABd, Hy, SAB, Qv, sv, Li, fb,
-                           column_start, column_rows, Y[k], L[k], Sd[k])
+            if generated:
+                call_step(address, S, ABd, Hy, Y[k], L[k], Sd[k], fb, k, nl)
+            else:
+                _riccati_lanes(k, nl, nx, nv, zero, one, S, ABd, Hy, SAB, Qv, sv, Li, fb,
+                               column_start, column_rows, Y[k], L[k], Sd[k])
         failed[:lanes] = fb[:lanes]
         return
     Db, ABb = np.empty((ny, LB), dt), np.empty((nx, ny + 1, LB), dt)
@@ -215,9 +245,13 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
         _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
                      worked, Hy, S, Db, ABb, sv)
         fb[:] = -1
+        generated = address != 0 and worked % width == 0
         for k in range(T - 1, -1, -1):
-            _riccati_lanes(k, worked, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, sv, Li, fb,
-                           column_start, column_rows, Yb, Lb, Sdb)
+            if generated:
+                call_step(address, S, ABb, Hy, Yb, Lb, Sdb, fb, k, worked)
+            else:
+                _riccati_lanes(k, worked, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, sv, Li, fb,
+                               column_start, column_rows, Yb, Lb, Sdb)
             _store_step(k, l0, nl, Yb, Lb, Sdb, Y, L, Sd)
         _store_block(l0, nl, fb, Db, ABb, failed, D, ABd)
 

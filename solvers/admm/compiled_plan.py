@@ -54,8 +54,8 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
              Y: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray,
              failed: np.ndarray, vectors: np.ndarray, Mc: np.ndarray, Mt: np.ndarray,
              consts: np.ndarray, p: np.ndarray, shared: bool, box: np.ndarray,
-             ratios: np.ndarray, iterates: np.ndarray, terminals: np.ndarray
-             ) -> tuple[int, int, int]:
+             ratios: np.ndarray, iterates: np.ndarray, terminals: np.ndarray,
+             steps: np.ndarray) -> tuple[int, int, int]:
     """Every iteration of the plan (module docstring).
 
     ``bases`` (N, ny, ny), ``two_rho_eta`` (N,) and ``consts`` (N, ny + 3) are the plan's
@@ -64,7 +64,9 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     group buffer (:class:`~c3bench.solvers.admm.compiled_factors.CompiledFactors`, ``m n``
     lanes: ``m`` is the group size); ``ratios`` (N - 1, ns);
     ``iterates`` (2, 3, n, T, ns): two sets of ``(delta, w, z_steps)``, set 0 holding the
-    initial ``delta`` and ``w``; ``terminals`` (2, n, nx) the sets' ``z_terminal``.
+    initial ``delta`` and ``w``; ``terminals`` (2, n, nx) the sets' ``z_terminal``; ``steps``
+    the generated backward steps of :func:`~c3bench.solvers.admm.compiled_kernels.
+    factorize_batch`.
 
     Returns ``(completed, set, code)``: the iterations completed, the set that holds the
     iterates after the last of them, and 0, :data:`FACTORISATION_FAILED` or
@@ -80,7 +82,7 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
             m = min(group, N - i)
             factorize_batch(A, Bv, d, MtM, bases[i:i + m], two_rho_eta[i:i + m], PT, ridge,
                             jacobi, zero, one, column_start, column_rows, Y, L, Sd, D, ABd,
-                            failed)
+                            failed, steps)
         for j in range(n):
             if failed[slot * n + j] >= 0:
                 return i, current, FACTORISATION_FAILED
