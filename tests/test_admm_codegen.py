@@ -1,7 +1,9 @@
-"""Tests of the generated backward step (solvers/admm/compiled_codegen.py): bit for bit the
-numba lane loops' step (the readable kernel) on random structures, sizes, lane counts and
-precisions, failing pivots included; the whole compiled kernel with and without generated code
-gives the same bits; the disk cache and a failed compilation. No timing."""
+"""Tests of the generated code (solvers/admm/compiled_codegen.py, the factorisation's backward
+step; compiled_passes_codegen.py, the linear passes): the backward step is bit for bit the numba
+lane loops' step (the readable kernel) on random structures, sizes, lane counts and precisions,
+failing pivots included; the whole compiled kernel with and without generated code (step and
+passes) gives the same bits on random batches of 1 to 40 samples and on the cube's push; the
+disk cache and a failed compilation. No timing."""
 
 from __future__ import annotations
 
@@ -21,6 +23,11 @@ from c3bench.solvers.admm.options import C3Options
 pytestmark = pytest.mark.usefixtures("compiled_kernels")
 
 _SIGNATURE = ctypes.CFUNCTYPE(None, *([ctypes.c_void_p] * 7), ctypes.c_int64, ctypes.c_int64)
+
+
+def _forget_generated(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(codegen, "_TABLES", {})
+    monkeypatch.setattr(codegen, "_GENERATED", {})
 
 
 def _bits(array: np.ndarray) -> np.ndarray:
@@ -135,13 +142,13 @@ def test_cube_push_gives_the_same_bits_with_and_without_generated_code(
 def test_object_code_is_kept_on_disk_and_loaded(tmp_path: Any,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
-    monkeypatch.setattr(codegen, "_TABLES", {})
+    _forget_generated(monkeypatch)
     pattern, S, ABd, Hy = _step_inputs(3, 2, 8, 0.6, np.float64, seed=5)
     compiled, loaded = codegen.CODEGEN.compiled, codegen.CODEGEN.loaded
     first = _generated_step(2, 3, 2, pattern, S.copy(), ABd, Hy)
     assert codegen.CODEGEN.compiled == compiled + 1
     assert len(list((tmp_path / "c3bench_codegen").glob("*.o"))) == 1
-    monkeypatch.setattr(codegen, "_TABLES", {})
+    _forget_generated(monkeypatch)
     second = _generated_step(2, 3, 2, pattern, S.copy(), ABd, Hy)
     assert (codegen.CODEGEN.compiled, codegen.CODEGEN.loaded) == (compiled + 1, loaded + 1)
     for a, b in zip(first, second, strict=True):
@@ -149,11 +156,11 @@ def test_object_code_is_kept_on_disk_and_loaded(tmp_path: Any,
 
 
 def test_a_failed_compilation_leaves_the_lane_loops(monkeypatch: pytest.MonkeyPatch) -> None:
-    def broken(ir_text: str) -> int:
+    def broken(ir_text: str, function: str) -> int:
         raise RuntimeError("no code today")
 
     monkeypatch.setattr(codegen, "_address", broken)
-    monkeypatch.setattr(codegen, "_TABLES", {})
+    _forget_generated(monkeypatch)
     failures = len(codegen.CODEGEN.failures)
     pattern = kernels.structure(np.ones((2, 4), dtype=bool))
     table = codegen.step_table(pattern.column_start, pattern.column_rows, 2, 1, np.float64,

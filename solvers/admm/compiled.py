@@ -65,6 +65,7 @@ from c3bench.solvers.admm.compiled_factors import (
     plan_group,
     rho_key,
 )
+from c3bench.solvers.admm.compiled_generated import GeneratedCode
 from c3bench.solvers.admm.kernel import KernelFailure, PlanRun
 from c3bench.solvers.admm.schedules import is_frozen
 from c3bench.solvers.fast import RiccatiOptions
@@ -163,7 +164,7 @@ class CompiledC3PlusKernel:
         iterations: :func:`passes.solve_flops` per sample), over the structural nonzeros."""
         self._shared = False
         self._solve_compiled = False
-        self._steps_memo: tuple[tuple[Any, ...], np.ndarray] | None = None
+        self._generated = GeneratedCode()
 
     def set_box(self, box: tuple[np.ndarray, np.ndarray] | None) -> None:
         """The ``(lower, upper)`` box of one step's ``(x, u)`` (``None``: unbounded)."""
@@ -242,7 +243,7 @@ class CompiledC3PlusKernel:
         args = (self._vectors, delta, w, self._arrays["Mc"], self._arrays["Mt"], entry.consts,
                 f.Y, f.L, f.Sd, f.D, f.ABd, entry.slot, pattern.column_start, pattern.column_rows,
                 pattern.row_start, pattern.row_columns, self._p, self._shared, self._box,
-                self._zero, out[0], z_terminal, out[1], out[2])
+                self._zero, out[0], z_terminal, out[1], out[2], self._passes(f))
         if self._solve_compiled:
             ok = passes.solve_project(*args)
         else:
@@ -276,7 +277,7 @@ class CompiledC3PlusKernel:
             pattern.column_start, pattern.column_rows, pattern.row_start, pattern.row_columns,
             f.Y, f.L, f.Sd, f.D, f.ABd, f.failed, self._vectors, a["Mc"], a["Mt"], consts,
             self._p, self._shared, self._box, ratios, iterates, terminals,
-            self._steps(f.shape[0], len(plan) % f.shape[0] or f.shape[0]))
+            self._steps(f.shape[0], len(plan) % f.shape[0] or f.shape[0]), self._passes(f))
         group, n = f.shape[0], len(self._p)
         attempted = min(completed + (code != 0), len(plan))  # the failed one included
         factorised = min(-(-attempted // group) * group, len(plan))  # whole groups
@@ -455,15 +456,16 @@ class CompiledC3PlusKernel:
         return entry
 
     def _steps(self, *slots: int) -> np.ndarray:
-        """:func:`codegen.step_table` for ``slots`` rho values at a time (memoised)."""
-        memo = (self._structure_key, slots)
-        if self._steps_memo is None or self._steps_memo[0] != memo:
-            n, nx, nlam, nu = self._shape
-            lanes = [kernels.work_lanes(m * n) for m in slots]
-            self._steps_memo = (memo, codegen.step_table(
-                self.structure.column_start, self.structure.column_rows, nx, nlam + nu,
-                self.dtype, lanes, kernels.LANE_BLOCK + 1))
-        return self._steps_memo[1]
+        """:meth:`GeneratedCode.steps` for ``slots`` rho values at a time."""
+        n, nx, nlam, nu = self._shape
+        return self._generated.steps(self._structure_key, self.structure, n, nx, nlam + nu,
+                                     self.dtype, slots)
+
+    def _passes(self, factors: CompiledFactors) -> np.ndarray:
+        """:meth:`GeneratedCode.passes` for ``factors``."""
+        n, nx, nlam, nu = self._shape
+        return self._generated.passes(self._structure_key, self.structure, n, nx, nlam + nu,
+                                      nlam, self.mpc.horizon, factors.Y.shape[3], self.dtype)
 
     @property
     def structure(self) -> kernels.Structure:

@@ -15,7 +15,8 @@ and one precision as LLVM IR:
 
 The IR is compiled by LLVM through llvmlite (numba's own code generator, installed with it,
 no C compiler needed) and called from the numba kernel through its address
-(:func:`call_step`).
+(:func:`call_step`). The linear passes of each iteration are generated the same way
+(:mod:`.compiled_passes_codegen`), through :func:`generated` here.
 
 **Exactness.** The generated code performs the lane loops' operations in the same order:
 the same sums from ``+0.0`` or from the same first entry, ``fsub`` where they subtract, the
@@ -53,6 +54,7 @@ import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, cast
 
@@ -62,8 +64,8 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["CODEGEN", "ENV_SWITCH", "call_step", "enabled", "step_ir", "step_table",
-           "vector_width"]
+__all__ = ["CODEGEN", "ENV_SWITCH", "Emitter", "call_step", "enabled", "generated", "step_ir",
+           "step_table", "vector_width"]
 
 ENV_SWITCH = "C3BENCH_CODEGEN"
 """Environment variable: ``0``, ``off`` or ``false`` switches the generated code off."""
@@ -113,13 +115,16 @@ def vector_width(lanes: int, dtype: Any) -> int:
     return 4
 
 
-class _Emitter:
-    """Straight-line IR of one chunk of lanes: numbered values, each input loaded once."""
+class Emitter:
+    """Straight-line IR of one chunk of ``width`` lanes (``width`` 1: scalars): numbered
+    values, each input loaded once."""
 
     def __init__(self, scalar: str, width: int) -> None:
         self.scalar = scalar
-        self.vector = f"<{width} x {scalar}>"
+        self.vector = f"<{width} x {scalar}>" if width > 1 else scalar
         self.width = width
+        self.zero = "zeroinitializer" if width > 1 else "0.0"
+        self.one = _splat(scalar, width, "1.0") if width > 1 else "1.0"
         self.lines: list[str] = []
         self.count = 0
         self.loaded: dict[tuple[str, int], str] = {}
@@ -139,6 +144,20 @@ class _Emitter:
         if key not in self.loaded:
             pointer = self.emit(f"getelementptr inbounds {self.scalar}, ptr {base}, i64 {offset}")
             self.loaded[key] = self.emit(f"load {self.vector}, ptr {pointer}, align 8")
+        return self.loaded[key]
+
+    def broadcast(self, base: str, offset: int) -> str:
+        """The scalar ``base[offset]`` in every lane (loaded once)."""
+        key = ("scalar " + base, offset)
+        if key not in self.loaded:
+            pointer = self.emit(f"getelementptr inbounds {self.scalar}, ptr {base}, i64 {offset}")
+            value = self.emit(f"load {self.scalar}, ptr {pointer}, align 8")
+            if self.width > 1:
+                value = self.emit(f"insertelement {self.vector} poison, {self.scalar} {value}, "
+                                  "i64 0")
+                value = self.emit(f"shufflevector {self.vector} {value}, {self.vector} poison, "
+                                  f"<{self.width} x i32> zeroinitializer")
+            self.loaded[key] = value
         return self.loaded[key]
 
     def store(self, base: str, offset: int, value: str) -> None:
@@ -164,10 +183,10 @@ def _columns(column_start: np.ndarray, column_rows: np.ndarray) -> list[list[int
             for b in range(len(column_start) - 1)]
 
 
-def _products(e: _Emitter, nx: int, nv: int, columns: list[list[int]], lanes: int
+def _products(e: Emitter, nx: int, nv: int, columns: list[list[int]], lanes: int
               ) -> tuple[dict[tuple[int, int], str], dict[tuple[int, int], str]]:
     """``S [A B_v]`` (``SAB``), ``S d`` (stored) and ``[Q_vx Q_vv]`` (lower part, ``Qv``)."""
-    ny, zero = nx + nv, "zeroinitializer"
+    ny, zero = nx + nv, e.zero
     SAB: dict[tuple[int, int], str] = {}
     for b in range(ny):
         for a in range(nx):
@@ -193,12 +212,11 @@ def _products(e: _Emitter, nx: int, nv: int, columns: list[list[int]], lanes: in
     return SAB, Qv
 
 
-def _cholesky(e: _Emitter, nx: int, nv: int, Qv: dict[tuple[int, int], str], lanes: int
+def _cholesky(e: Emitter, nx: int, nv: int, Qv: dict[tuple[int, int], str], lanes: int
               ) -> tuple[dict[tuple[int, int], str], dict[int, str]]:
     """``Q_vv = L L^T`` with ``1 / L[a, a]`` on the diagonal; a lane whose pivot is not
     positive records ``k`` in ``fb`` (first failure) and continues on a unit pivot."""
-    w, vector = e.width, e.vector
-    one = _splat(e.scalar, w, "1.0")
+    w, vector, one = e.width, e.vector, e.one
     bits = 64 if e.scalar == "double" else 32
     failed = e.emit(f"load <{w} x i64>, ptr %fb, align 8")
     k = e.emit(f"insertelement <{w} x i64> poison, i64 %k, i64 0")
@@ -228,7 +246,7 @@ def _cholesky(e: _Emitter, nx: int, nv: int, Qv: dict[tuple[int, int], str], lan
     return L, inverse
 
 
-def _update(e: _Emitter, nx: int, nv: int, columns: list[list[int]], lanes: int,
+def _update(e: Emitter, nx: int, nv: int, columns: list[list[int]], lanes: int,
             SAB: dict[tuple[int, int], str], Qv: dict[tuple[int, int], str],
             L: dict[tuple[int, int], str], inverse: dict[int, str]) -> None:
     """``Y = L^-1 Q_vx`` and ``S_k = H_xx + A^T S A - Y^T Y`` (upper triangle, mirrored)."""
@@ -262,7 +280,7 @@ def step_ir(nx: int, nv: int, column_start: np.ndarray, column_rows: np.ndarray,
     ``Sd`` (nx,), lanes last, C order; ``fb`` (count,) int64), over the structural nonzeros
     ``column_start``, ``column_rows`` of ``[A B_v d]``."""
     scalar = "double" if np.dtype(dtype) == np.float64 else "float"
-    e = _Emitter(scalar, width)
+    e = Emitter(scalar, width)
     columns = _columns(column_start, column_rows)
     SAB, Qv = _products(e, nx, nv, columns, lanes)
     L, inverse = _cholesky(e, nx, nv, Qv, lanes)
@@ -298,6 +316,8 @@ _TARGET: list[Any] = []
 _ENGINES: list[Any] = []
 """The execution engines holding the loaded code (alive as long as the process)."""
 _TABLES: dict[tuple[Any, ...], np.ndarray] = {}
+_GENERATED: dict[tuple[Any, ...], tuple[int, int]] = {}
+"""``(address, width)`` by what was generated (:func:`generated`)."""
 
 
 def _target_machine() -> Any:
@@ -346,13 +366,33 @@ def _object_code(ir_text: str) -> bytes:
     return code
 
 
-def _address(ir_text: str) -> int:
-    """Load the object code of ``ir_text`` into an execution engine; its function's address."""
+def _address(ir_text: str, function: str) -> int:
+    """Load the object code of ``ir_text`` into an execution engine; ``function``'s address."""
     engine = llvm.create_mcjit_compiler(llvm.parse_assembly(""), _target_machine())
     engine.add_object_file(llvm.ObjectFileRef.from_data(_object_code(ir_text)))
     engine.finalize_object()
     _ENGINES.append(engine)
-    return int(engine.get_function_address(FUNCTION))
+    return int(engine.get_function_address(function))
+
+
+def generated(key: tuple[Any, ...], build: Callable[[], str], function: str, width: int
+              ) -> tuple[int, int]:
+    """``(address, width)`` of ``function`` in the IR ``build()`` returns, compiled (or
+    loaded from disk) once per process and ``key``; ``(0, 0)`` when :func:`enabled` is off
+    or generating or compiling fails (recorded in :data:`CODEGEN`: the numba loops run)."""
+    if not enabled():
+        return 0, 0
+    known = _GENERATED.get(key)
+    if known is None:
+        started = time.perf_counter()
+        try:
+            known = (_address(build(), function), width)
+        except Exception as error:  # noqa: BLE001 (any LLVM failure: the numba loops run)
+            CODEGEN.failures.append(f"{type(error).__name__}: {error}")
+            known = (0, 0)
+        _GENERATED[key] = known
+        CODEGEN.seconds += time.perf_counter() - started
+    return known
 
 
 def step_table(column_start: np.ndarray, column_rows: np.ndarray, nx: int, nv: int,
@@ -369,17 +409,12 @@ def step_table(column_start: np.ndarray, column_rows: np.ndarray, nx: int, nv: i
     if table is None:
         table = _TABLES[key] = np.zeros((size, 2), np.int64)
     for lanes in lane_counts:
-        if table[lanes, 0] != 0 or lanes % 4 != 0:
-            continue
-        started = time.perf_counter()
-        width = vector_width(lanes, dtype)
-        try:
-            address = _address(step_ir(nx, nv, column_start, column_rows, lanes, dtype, width))
-        except Exception as error:  # noqa: BLE001 (any LLVM failure: the lane loops run)
-            CODEGEN.failures.append(f"{type(error).__name__}: {error}")
-            address = 0
-        table[lanes] = (address, width if address else 0)
-        CODEGEN.seconds += time.perf_counter() - started
+        if table[lanes, 0] == 0 and lanes % 4 == 0:
+            width = vector_width(lanes, dtype)
+            table[lanes] = generated(
+                ("step", lanes, width, *key),
+                partial(step_ir, nx, nv, column_start, column_rows, lanes, dtype, width),
+                FUNCTION, width)
     return table
 
 

@@ -8,7 +8,9 @@ products with ``[A B_v d]`` over its structural nonzeros), ``eta``, the C3+ proj
 one closed form of :mod:`c3bench.solvers.admm.projection`, compiled) and the loop's dual update
 (:func:`c3bench.solvers.admm.loop.dual_update`, compiled), in one call. From
 :data:`LANE_SOLVE` samples on the samples are vector lanes (every innermost loop runs over
-samples); below, one sample at a time.
+samples); below, one sample at a time. Where code was generated for the batch's structure
+and sizes (:mod:`c3bench.solvers.admm.compiled_passes_codegen`: the same arithmetic in the
+same order, unrolled and straight-line, bit for bit the same ``z``), it replaces both loops.
 
 References: the Riccati recursion of the LQ problem (Rawlings, Mayne & Diehl, *Model Predictive
 Control*, 2nd ed., section 1.3.3); triangular solves (Golub & Van Loan, *Matrix Computations*,
@@ -25,6 +27,7 @@ import numpy as np
 
 from c3bench.solvers.admm.compiled_kernels import Structure
 from c3bench.solvers.admm.compiled_kernels import jit as _jit
+from c3bench.solvers.admm.compiled_passes_codegen import call_passes
 from c3bench.solvers.admm.loop import dual_update
 from c3bench.solvers.admm.projection import make_c3plus_pairs
 
@@ -67,7 +70,8 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
                   column_start: np.ndarray,
                   column_rows: np.ndarray, row_start: np.ndarray, row_columns: np.ndarray,
                   p: np.ndarray, shared: bool, box: np.ndarray, zero: Any, z_steps: np.ndarray,
-                  z_terminal: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray) -> bool:
+                  z_terminal: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray,
+                  generated: np.ndarray) -> bool:
     """QP step (linear passes of factorisation slot ``index``: lanes ``index n .. index n + n``
     of ``Y`` (T, nv, nx, lanes) etc.,
     :func:`c3bench.solvers.admm.compiled_kernels.factorize_batch`), projection and dual update
@@ -86,9 +90,18 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
     (:func:`c3bench.solvers.admm.loop.dual_update`, compiled, entry by entry). From
     :data:`LANE_SOLVE` samples on every sample is a lane (the innermost loops run over the
     samples, the last axis of the factors and of the local arrays); below, one sample at a
-    time (:func:`_solve_project_samples`).
+    time (:func:`_solve_project_samples`). ``generated`` = ``(address, width, factor lanes,
+    samples)`` of the passes generated for this structure and these sizes
+    (:func:`c3bench.solvers.admm.compiled_passes_codegen.passes_address`; address 0: none),
+    which replace the loops (:func:`_generated_passes`, bit for bit the same ``z``) when the
+    sizes agree.
     """
     n, T, ns = delta.shape
+    if generated[0] != 0 and generated[2] == Y.shape[3] and generated[3] == n and \
+            n % generated[1] == 0:
+        return _generated_passes(generated[0], vectors, delta, w, Mt, consts, Y, L, Sd, D, ABd,
+                                 index, p, shared, box, zero, z_steps, z_terminal, new_delta,
+                                 new_w)
     if n < LANE_SOLVE:
         return _solve_project_samples(vectors, delta, w, Mc, consts, Y, L, Sd, D, ABd, index,
                                       column_start, column_rows, row_start, row_columns, p,
@@ -237,6 +250,38 @@ def _solve_project_samples(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray
                       Sd[:, :, lane], D[:, lane], ABd[:, :, lane], column_start, column_rows,
                       row_start, row_columns, zero, z_steps, z_terminal, work)
     return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, Mc.shape[1], consts,
+                               p, shared, box, zero)
+
+
+@_jit
+def _generated_passes(address: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
+                      Mt: np.ndarray, consts: np.ndarray, Y: np.ndarray, L: np.ndarray,
+                      Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, index: int,
+                      p: np.ndarray, shared: bool, box: np.ndarray, zero: Any,
+                      z_steps: np.ndarray, z_terminal: np.ndarray, new_delta: np.ndarray,
+                      new_w: np.ndarray) -> bool:
+    """:func:`solve_project` with the generated passes at ``address``
+    (:mod:`c3bench.solvers.admm.compiled_passes_codegen`): ``delta - w`` with the samples
+    last, the passes into ``zt`` (T + 1, ns, n), ``z`` copied out, then
+    :func:`_project_and_update`."""
+    n, T, ns = delta.shape
+    nx = Y.shape[2]
+    o = index * n
+    dw = np.empty((T, ns, n), delta.dtype)
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                dw[k, a, j] = delta[j, k, a] - w[j, k, a]
+    zt = np.empty((T + 1, ns, n), delta.dtype)
+    call_passes(address, dw, Mt, consts, vectors, Y[:, :, :, o:], L[:, :, :, o:],
+                Sd[:, :, o:], D[:, o:], ABd[:, :, o:], zt, n)
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                z_steps[j, k, a] = zt[k, a, j]
+        for a in range(nx):
+            z_terminal[j, a] = zt[T, a, j]
+    return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, Mt.shape[0], consts,
                                p, shared, box, zero)
 
 

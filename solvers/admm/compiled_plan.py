@@ -55,7 +55,7 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
              failed: np.ndarray, vectors: np.ndarray, Mc: np.ndarray, Mt: np.ndarray,
              consts: np.ndarray, p: np.ndarray, shared: bool, box: np.ndarray,
              ratios: np.ndarray, iterates: np.ndarray, terminals: np.ndarray,
-             steps: np.ndarray) -> tuple[int, int, int]:
+             steps: np.ndarray, generated: np.ndarray) -> tuple[int, int, int]:
     """Every iteration of the plan (module docstring).
 
     ``bases`` (N, ny, ny), ``two_rho_eta`` (N,) and ``consts`` (N, ny + 3) are the plan's
@@ -66,7 +66,8 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     ``iterates`` (2, 3, n, T, ns): two sets of ``(delta, w, z_steps)``, set 0 holding the
     initial ``delta`` and ``w``; ``terminals`` (2, n, nx) the sets' ``z_terminal``; ``steps``
     the generated backward steps of :func:`~c3bench.solvers.admm.compiled_kernels.
-    factorize_batch`.
+    factorize_batch`, ``generated`` the generated passes of :func:`~c3bench.solvers.admm.
+    compiled_passes.solve_project`.
 
     Returns ``(completed, set, code)``: the iterations completed, the set that holds the
     iterates after the last of them, and 0, :data:`FACTORISATION_FAILED` or
@@ -91,7 +92,7 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                              consts[i], Y, L, Sd, D, ABd, slot, column_start, column_rows,
                              row_start, row_columns, p, shared, box, zero,
                              iterates[target, 2], terminals[target], iterates[target, 0],
-                             iterates[target, 1]):
+                             iterates[target, 1], generated):
             return i, current, NON_FINITE
         current = target
         if i + 1 < N:
