@@ -8,6 +8,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from types import SimpleNamespace
 
+import numba
 import numpy as np
 import pytest
 from conftest import push_batches, random_lcs_problem
@@ -19,6 +20,7 @@ from c3bench.problems.names import Precision
 from c3bench.solvers.admm import compiled_kernels as kernels
 from c3bench.solvers.admm import compiled_passes as passes
 from c3bench.solvers.admm.compiled import CompiledC3PlusKernel, KernelFailure
+from c3bench.solvers.admm.projection import make_c3plus_pairs
 from c3bench.solvers.fast import FastC3Plus, RiccatiOptions, project_c3plus_batch
 
 TOLERANCE = {Precision.FLOAT64: 1e-9, Precision.FLOAT32: 2e-3}
@@ -329,3 +331,24 @@ def test_fused_step_is_the_iteration_and_its_dual_update(push: SimpleNamespace,
         for ours, theirs in ((got.delta, expected.delta), (got.w, expected.w),
                              (got.u, expected.u)):
             assert _relative(ours, theirs) <= TOLERANCE[precision]
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_pair_projection_for_scalars_is_the_array_one_bit_for_bit(dtype: type) -> None:
+    """The closed form compiled for one pair (the projection's loop) against the same closed
+    form compiled for arrays, on near-ties, NaN, infinities and signed zeros."""
+    array_pairs = numba.njit(make_c3plus_pairs(np))
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=4000).astype(dtype)
+    b = (a * dtype(1.0000001) + rng.normal(size=4000).astype(dtype) * dtype(1e-7)).astype(dtype)
+    a[:10] = [np.nan, -np.inf, np.inf, 0.0, -0.0, 0.0, -0.0, np.nan, 1.0, -1.0]
+    b[:10] = [1.0, 2.0, 3.0, -0.0, 0.0, 0.0, -0.0, np.nan, np.nan, np.inf]
+    unsigned = np.uint64 if dtype == np.float64 else np.uint32
+    for sqrt_lam, sqrt_eta in ((1.3, 1.3), (31.6, 1.0), (0.0, 2.0)):
+        weights = (dtype(sqrt_lam), dtype(sqrt_eta))
+        lam, eta = (np.asarray(x).astype(dtype) for x in array_pairs(a, b, *weights))
+        pairs = [passes._c3plus_pair(x, y, *weights) for x, y in zip(a, b, strict=True)]
+        got_lam = np.array([p[0] for p in pairs]).astype(dtype)
+        got_eta = np.array([p[1] for p in pairs]).astype(dtype)
+        np.testing.assert_array_equal(got_lam.view(unsigned), lam.view(unsigned))
+        np.testing.assert_array_equal(got_eta.view(unsigned), eta.view(unsigned))

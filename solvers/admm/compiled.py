@@ -150,7 +150,6 @@ class CompiledC3PlusKernel:
         self._rho_constants: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
         self._stacked: dict[tuple[tuple[float, ...], ...],
                             tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._sets: tuple[np.ndarray, np.ndarray] | None = None  # run_plan's iterate sets
         self._p = np.ones(1, self.dtype)
         self._structure_key: tuple[Any, ...] | None = None
         self._structures: OrderedDict[tuple[Any, ...], tuple[kernels.Structure, int, int]] = \
@@ -267,7 +266,9 @@ class CompiledC3PlusKernel:
             raise InputError("run_plan needs the plan given to start()")
         delta, w = self._checked(delta), self._checked(w)
         _, (bases, two_rho_eta, consts) = self._stack(self._plan, self._plan_keys)
-        iterates, terminals = self._iterate_sets()
+        shape = self._step_shape  # new sets every step: the PlanRun's arrays are views
+        iterates = np.empty((2, 3, *shape), self.dtype)
+        terminals = np.empty((2, shape[0], self.nx), self.dtype)
         iterates[0, 0], iterates[0, 1] = delta, w
         f, a = self._planned, self._arrays
         self._entries = {}  # the group buffer is overwritten
@@ -291,9 +292,9 @@ class CompiledC3PlusKernel:
             failure = KernelFailure("non-finite QP solution", f"rho={dict(plan[completed])}",
                                     True)
         done = completed > 0
-        return PlanRun(completed, iterates[current, 0].copy(), iterates[current, 1].copy(),
-                       iterates[current, 2].copy() if done else None,
-                       terminals[current].copy() if done else None, failure)
+        return PlanRun(completed, iterates[current, 0], iterates[current, 1],
+                       iterates[current, 2] if done else None,
+                       terminals[current] if done else None, failure)
 
     # -- internals -----------------------------------------------------------------------------
     def _checked(self, array: np.ndarray) -> np.ndarray:
@@ -304,15 +305,6 @@ class CompiledC3PlusKernel:
             raise InputError(f"delta and w must have shape {self._step_shape}, got "
                              f"{array.shape}")
         return array
-
-    def _iterate_sets(self) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`run_plan`'s two sets of ``(delta, w, z_steps)`` and ``z_terminal``,
-        preallocated for the current shapes."""
-        shape = self._step_shape
-        if self._sets is None or self._sets[0].shape[2:] != shape:
-            self._sets = (np.empty((2, 3, *shape), self.dtype),
-                          np.empty((2, shape[0], self.nx), self.dtype))
-        return self._sets
 
     def _convert(self, lcs: LCSBatch) -> None:
         """LCS data in the working precision, into buffers reused when the shapes repeat."""

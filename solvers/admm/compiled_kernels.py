@@ -77,6 +77,12 @@ import numpy as np
 
 from c3bench.problems.jit import jit
 from c3bench.solvers.admm.compiled_codegen import call_step
+from c3bench.solvers.admm.compiled_lanes import (
+    lane_indices,
+    scale_lanes,
+    store_block,
+    store_step,
+)
 
 __all__ = ["LANE_BLOCK", "LANE_PAD", "Structure", "assemble", "factor_flops", "factorize_batch",
            "jit", "no_steps", "padded_lanes", "setup_flops", "structure", "work_lanes"]
@@ -99,8 +105,8 @@ def factor_flops(nx: int, nv: int, pattern: Structure | None = None) -> int:
 
 def setup_flops(nx: int, nv: int) -> int:
     """Floating-point operations of one lane's setup in :func:`factorize_batch`: the entries
-    of ``H_y`` the backward steps read (:func:`_used_columns`: a multiply-add each, then two
-    products for the scaling), the scaled ``[A B_v d]`` and ``S_T``."""
+    of ``H_y`` the backward steps read (:func:`.compiled_lanes.used_columns`: a multiply-add
+    each, then two products for the scaling), the scaled ``[A B_v d]`` and ``S_T``."""
     ny = nx + nv
     used = nx * (nx + 1) // 2 + nv * nx + nv * (nv + 1) // 2
     return 4 * used + 2 * nx * (ny + 1) + 2 * nx * nx + 2 * ny
@@ -222,8 +228,8 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     li, lj = np.empty(LB, np.int64), np.empty(LB, np.int64)
     if padded <= LANE_BLOCK:
         nl = padded if Y.shape[3] >= padded else lanes  # the padding lanes, where there is room
-        _lane_indices(0, nl, lanes, n, li, lj)
-        _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
+        lane_indices(0, nl, lanes, n, li, lj)
+        scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
                      nl, Hy, S, D, ABd, sv)
         fb[:] = -1
         generated = address != 0 and nl == LB and nl % width == 0 and \
@@ -241,8 +247,8 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
     for l0 in range(0, lanes, LB):
         nl = min(LB, lanes - l0)
         worked = padded_lanes(nl)  # <= LB: LANE_BLOCK is a multiple of LANE_PAD
-        _lane_indices(l0, worked, lanes, n, li, lj)
-        _scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
+        lane_indices(l0, worked, lanes, n, li, lj)
+        scale_lanes(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one, li, lj,
                      worked, Hy, S, Db, ABb, sv)
         fb[:] = -1
         generated = address != 0 and worked % width == 0
@@ -252,106 +258,8 @@ def factorize_batch(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarra
             else:
                 _riccati_lanes(k, worked, nx, nv, zero, one, S, ABb, Hy, SAB, Qv, sv, Li, fb,
                                column_start, column_rows, Yb, Lb, Sdb)
-            _store_step(k, l0, nl, Yb, Lb, Sdb, Y, L, Sd)
-        _store_block(l0, nl, fb, Db, ABb, failed, D, ABd)
-
-
-@jit
-def _lane_indices(l0: int, nl: int, lanes: int, n: int, li: np.ndarray, lj: np.ndarray
-                  ) -> None:
-    """The rho ``li[l]`` and sample ``lj[l]`` of lanes ``l0 .. l0 + nl`` (lane ``i n + j``);
-    a padding lane (from ``lanes`` on) repeats lane ``l0``."""
-    for l in range(nl):
-        g = l0 + l if l0 + l < lanes else l0
-        li[l], lj[l] = g // n, g % n
-
-
-@jit
-def _store_step(k: int, l0: int, nl: int, Yb: np.ndarray, Lb: np.ndarray, Sdb: np.ndarray,
-                Y: np.ndarray, L: np.ndarray, Sd: np.ndarray) -> None:
-    """Copy step ``k`` of a block (``Y``, the lower triangle of ``L``, ``S_{k+1} d``) into
-    lanes ``l0 .. l0 + nl`` of the outputs."""
-    nv, nx = Yb.shape[0], Yb.shape[1]
-    for a in range(nv):
-        for b in range(nx):
-            for q in range(nl):
-                Y[k, a, b, l0 + q] = Yb[a, b, q]
-        for b in range(a + 1):  # lower triangle (the rest stays 0)
-            for q in range(nl):
-                L[k, a, b, l0 + q] = Lb[a, b, q]
-    for a in range(nx):
-        for q in range(nl):
-            Sd[k, a, l0 + q] = Sdb[a, q]
-
-
-@jit
-def _store_block(l0: int, nl: int, fb: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
-                 failed: np.ndarray, D: np.ndarray, ABd: np.ndarray) -> None:
-    """Copy a block's failures, scaling and scaled ``[A B_v d]`` into lanes ``l0 .. l0 +
-    nl`` of the outputs."""
-    ny, nx = Db.shape[0], ABb.shape[0]
-    for q in range(nl):
-        failed[l0 + q] = fb[q]
-    for a in range(ny):
-        for q in range(nl):
-            D[a, l0 + q] = Db[a, q]
-    for a in range(nx):
-        for b in range(ny + 1):
-            for q in range(nl):
-                ABd[a, b, l0 + q] = ABb[a, b, q]
-
-
-@jit
-def _used_columns(a: int, nx: int, ny: int) -> tuple[int, int]:
-    """The columns ``first .. stop`` of row ``a`` of ``H_y`` that :func:`_riccati_lanes`
-    reads: the upper triangle of the ``x`` block (``S_k``'s ``H_xx``) and, in the rows of
-    ``v``, everything up to the diagonal (``[Q_vx Q_vv]``'s lower part); the rest of ``H_y``
-    is left unwritten."""
-    return (a, nx) if a < nx else (0, a + 1)
-
-
-@jit
-def _scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
-                 base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray, ridge: Any,
-                 jacobi: bool, zero: Any, one: Any, li: np.ndarray, lj: np.ndarray, nl: int,
-                 Hy: np.ndarray, S: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
-                 scratch: np.ndarray) -> None:
-    """``H_y`` scaled to a unit diagonal (plus ridge; the entries of :func:`_used_columns`),
-    ``D``, the scaled ``[A B_v d]`` and ``S_T = D_x P_T D_x`` of the ``nl`` lanes (rho
-    ``li[l]``, sample ``lj[l]``); lane index innermost in every loop."""
-    nx, nv = A.shape[0], Bv.shape[1]
-    ny = nx + nv
-    for l in range(nl):
-        scratch[l] = two_rho_eta[li[l]]
-    for a in range(ny):  # only the entries the backward steps read (_used_columns)
-        first, stop = _used_columns(a, nx, ny)
-        for b in range(first, stop):
-            for l in range(nl):
-                Hy[a, b, l] = MtM[a, b, lj[l]] * scratch[l] + base[li[l], a, b]
-    for a in range(ny):
-        for l in range(nl):
-            h = Hy[a, a, l]
-            Db[a, l] = one / np.sqrt(h) if (jacobi and h > zero) else one
-    for a in range(ny):
-        first, stop = _used_columns(a, nx, ny)
-        for b in range(first, stop):
-            for l in range(nl):
-                Hy[a, b, l] = Hy[a, b, l] * Db[a, l] * Db[b, l]
-    for a in range(nx, ny):
-        for l in range(nl):
-            Hy[a, a, l] += ridge
-    for a in range(nx):
-        for l in range(nl):
-            scratch[l] = one / Db[a, l]
-        for b in range(nx):
-            for l in range(nl):
-                ABb[a, b, l] = A[a, b, lj[l]] * scratch[l] * Db[b, l]
-                S[a, b, l] = PT[a, b] * Db[a, l] * Db[b, l]
-        for b in range(nv):
-            for l in range(nl):
-                ABb[a, nx + b, l] = Bv[a, b, lj[l]] * scratch[l] * Db[nx + b, l]
-        for l in range(nl):
-            ABb[a, ny, l] = d[a, lj[l]] * scratch[l]
+            store_step(k, l0, nl, Yb, Lb, Sdb, Y, L, Sd)
+        store_block(l0, nl, fb, Db, ABb, failed, D, ABd)
 
 
 @jit

@@ -20,6 +20,7 @@ section 3.1.1).
 
 from __future__ import annotations
 
+import types
 from typing import Any
 
 import numba
@@ -33,8 +34,28 @@ from c3bench.solvers.admm.projection import make_c3plus_pairs
 
 __all__ = ["LANE_SOLVE", "solve_flops", "solve_project"]
 
-_c3plus_pairs = numba.njit(fastmath=False)(make_c3plus_pairs(np))
-"""The one C3+ pair projection (:mod:`c3bench.solvers.admm.projection`) compiled by numba."""
+@numba.njit(fastmath=False)
+def _maximum(a: Any, b: Any) -> Any:
+    """``numpy.maximum`` of two scalars (a NaN ``a`` kept, as numpy keeps it)."""
+    return a if (a >= b or a != a) else b
+
+
+@numba.njit(fastmath=False)
+def _where(condition: bool, a: Any, b: Any) -> Any:
+    """``numpy.where`` of scalars."""
+    return a if condition else b
+
+
+_SCALARS = types.ModuleType("scalar_namespace")
+"""The array namespace of :func:`make_c3plus_pairs` for one pair at a time in numba code:
+``maximum`` and ``where`` of scalars. Scalars promote as numba's array functions do (a float32
+entry against the literal ``0.0`` computes in float64), so the closed form gives the bits of
+the array version (checked in tests/test_admm_compiled.py, NaN, infinities and signed zeros
+included)."""
+_SCALARS.maximum, _SCALARS.where = _maximum, _where  # type: ignore[attr-defined]
+_c3plus_pair = numba.njit(fastmath=False)(make_c3plus_pairs(_SCALARS))
+"""The one C3+ pair projection (:mod:`c3bench.solvers.admm.projection`) compiled by numba for
+one pair (no temporary arrays)."""
 _dual_update = numba.njit(fastmath=False)(dual_update)
 """The loop's one dual update (:func:`c3bench.solvers.admm.loop.dual_update`) compiled by
 numba (called entry by entry: no temporary arrays)."""
@@ -292,20 +313,21 @@ def _project_and_update(z_steps: np.ndarray, z_terminal: np.ndarray, w: np.ndarr
                         zero: Any) -> bool:
     """The end of every iteration of :func:`solve_project`: the projection of ``z + w``
     (:func:`_project`) into ``new_delta`` and the dual update ``new_w = w + z - new_delta``
-    (entry by entry); ``False`` when the QP solution ``(z_steps, z_terminal)`` is not
-    finite."""
+    (entry by entry); ``False`` when an entry of the QP solution ``(z_steps, z_terminal)``
+    is not finite (tested entry by entry: a running sum of the entries, as before, was a
+    chain of dependent additions; 5.0 -> 3.8 us for this function at 16 samples)."""
     n, T, ns = z_steps.shape
     nx = z_terminal.shape[1]
     _project(z_steps, w, new_delta, nx, nlam, consts[-2], consts[-1], p, shared, box, zero)
-    total = zero
+    finite = True
     for j in range(n):
         for k in range(T):
             for a in range(ns):
-                total += z_steps[j, k, a]
+                finite &= abs(z_steps[j, k, a]) < np.inf  # False for NaN and infinities
                 new_w[j, k, a] = _dual_update(w[j, k, a], z_steps[j, k, a], new_delta[j, k, a])
         for a in range(nx):
-            total += z_terminal[j, a]
-    return bool(np.isfinite(total))
+            finite &= abs(z_terminal[j, a]) < np.inf
+    return finite
 
 
 @_jit
@@ -410,8 +432,8 @@ def _project(z: np.ndarray, w: np.ndarray, out: np.ndarray, nx: int, nlam: int,
              zero: Any) -> None:
     """C3+ projection of ``v = z + w`` (n, T, ns) into ``out``: ``x`` clipped to the box
     ``box`` (2, nx + nu) = (lower, upper) of one step's ``(x, u)`` (``+-inf`` where
-    unbounded); the pairs of all samples and steps by the one closed form
-    (:func:`c3bench.solvers.admm.projection.make_c3plus_pairs`, compiled, one call); ``u``
+    unbounded); every pair by the one closed form
+    (:func:`c3bench.solvers.admm.projection.make_c3plus_pairs`, compiled for scalars); ``u``
     replaced, when ``shared`` and ``n > 1``, by the weighted mean ``sum_j p_j v_{j,u}``, then
     clipped to the box."""
     n, T, ns = z.shape
@@ -422,12 +444,9 @@ def _project(z: np.ndarray, w: np.ndarray, out: np.ndarray, nx: int, nlam: int,
                 out[j, k, a] = z[j, k, a] + w[j, k, a]
             for a in range(nx):
                 out[j, k, a] = min(max(out[j, k, a], box[0, a]), box[1, a])
-    size = n * T * nlam  # contiguous copies: numba's np.where is several times faster on
-    lam_v = np.ascontiguousarray(out[:, :, nx:nx + nlam]).reshape(size)  # 1-d arrays than
-    eta_v = np.ascontiguousarray(out[:, :, ns - nlam:]).reshape(size)  # on strided slices
-    lam, eta = _c3plus_pairs(lam_v, eta_v, sqrt_lam, sqrt_eta)
-    out[:, :, nx:nx + nlam] = lam.reshape((n, T, nlam))
-    out[:, :, ns - nlam:] = eta.reshape((n, T, nlam))
+            for b in range(nlam):
+                out[j, k, nx + b], out[j, k, ns - nlam + b] = _c3plus_pair(
+                    out[j, k, nx + b], out[j, k, ns - nlam + b], sqrt_lam, sqrt_eta)
     for k in range(T):
         for a in range(nx + nlam, nx + nlam + nu):
             lower, upper = box[0, a - nlam], box[1, a - nlam]
