@@ -164,6 +164,7 @@ class CompiledC3PlusKernel:
         self._shared = False
         self._solve_compiled = False
         self._generated = GeneratedCode()
+        self._plan_stacked: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def set_box(self, box: tuple[np.ndarray, np.ndarray] | None) -> None:
         """The ``(lower, upper)`` box of one step's ``(x, u)`` (``None``: unbounded)."""
@@ -202,6 +203,7 @@ class CompiledC3PlusKernel:
         self._shared = bool(shared_inputs)
         plan = planned_rhos or ()
         if plan is not self._plan or not is_frozen(plan):  # a frozen plan's keys are known
+            self._plan_stacked = None
             self._plan_keys = [rho_key(rho) for rho in plan]
             self._plan_index = {}
             for i in range(len(plan) - 1, -1, -1):  # a repeated rho: its first place
@@ -265,7 +267,9 @@ class CompiledC3PlusKernel:
                                      [rho_key(rho) for rho in plan] != self._plan_keys):
             raise InputError("run_plan needs the plan given to start()")
         delta, w = self._checked(delta), self._checked(w)
-        _, (bases, two_rho_eta, consts) = self._stack(self._plan, self._plan_keys)
+        if self._plan_stacked is None:  # known while the same frozen plan comes back
+            self._plan_stacked = self._stack(self._plan, self._plan_keys)[1]
+        bases, two_rho_eta, consts = self._plan_stacked
         shape = self._step_shape  # new sets every step: the PlanRun's arrays are views
         iterates = np.empty((2, 3, *shape), self.dtype)
         terminals = np.empty((2, shape[0], self.nx), self.dtype)
@@ -323,6 +327,7 @@ class CompiledC3PlusKernel:
             self._planned = None
             self._rho_constants.clear()
             self._stacked.clear()
+            self._plan_stacked = None
         a = self._arrays
         mask = np.empty((nx, ny + 1), dtype=np.bool_)
         self._timed(kernels.assemble, lcs.A, lcs.B, lcs.D, lcs.d, lcs.E, lcs.F, lcs.H, lcs.c,

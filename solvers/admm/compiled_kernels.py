@@ -365,20 +365,34 @@ def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.n
     nlam = D.shape[2]  # the LCS's D (n, nx, nlam)
     ny = nx + nlam + nu
     M, product = np.empty((nlam, ny, n)), np.empty((ny, ny, n))
-    mask[:, :] = False
-    for j in range(n):
-        for a in range(nx):
-            for b in range(nx):
+    for a in range(nx):  # samples last; every innermost loop writes consecutive samples
+        for b in range(nx):
+            for j in range(n):
                 A_out[a, b, j] = A[j, a, b]
-                mask[a, b] |= A_out[a, b, j] != zero
-            for b in range(nlam):
+        for b in range(nlam):
+            for j in range(n):
                 Bv[a, b, j] = D[j, a, b]
-                mask[a, nx + b] |= Bv[a, b, j] != zero
-            for b in range(nu):
+        for b in range(nu):
+            for j in range(n):
                 Bv[a, nlam + b, j] = B[j, a, b]
-                mask[a, nx + nlam + b] |= Bv[a, nlam + b, j] != zero
+        for j in range(n):
             d_out[a, j] = d[j, a]
-            mask[a, ny] |= d_out[a, j] != zero
+    for a in range(nx):  # the structure: an entry nonzero in some sample
+        for b in range(nx):
+            nonzero = False
+            for j in range(n):
+                nonzero |= A_out[a, b, j] != zero
+            mask[a, b] = nonzero
+        for b in range(nlam + nu):
+            nonzero = False
+            for j in range(n):
+                nonzero |= Bv[a, b, j] != zero
+            mask[a, nx + b] = nonzero
+        nonzero = False
+        for j in range(n):
+            nonzero |= d_out[a, j] != zero
+        mask[a, ny] = nonzero
+    for j in range(n):
         for r in range(nlam):
             for b in range(nx):
                 Mc[j, r, b] = E[j, r, b]
@@ -387,14 +401,18 @@ def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.n
             for b in range(nu):
                 Mc[j, r, nx + nlam + b] = H[j, r, b]
             Mc[j, r, ny] = c[j, r]
-            for b in range(ny + 1):
+    for r in range(nlam):
+        for b in range(ny + 1):
+            for j in range(n):
                 Mt[r, b, j] = Mc[j, r, b]
-        for r in range(nlam):  # M as given (float64), samples last
-            for b in range(nx):
+        for b in range(nx):  # M as given (float64), samples last
+            for j in range(n):
                 M[r, b, j] = E[j, r, b]
-            for b in range(nlam):
+        for b in range(nlam):
+            for j in range(n):
                 M[r, nx + b, j] = F[j, r, b]
-            for b in range(nu):
+        for b in range(nu):
+            for j in range(n):
                 M[r, nx + nlam + b, j] = H[j, r, b]
     product[:, :, :] = 0.0  # M^T M, every sample at once: each entry's sum in r order
     for r in range(nlam):

@@ -81,9 +81,10 @@ def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -
     array = np.asarray(weights, dtype=float)
     if array.shape != (samples,):
         raise ValueError(f"weights must have shape ({samples},), got {array.shape}")
-    if not np.isfinite(array).all() or (array < 0).any() or array.sum() <= 0:
+    total = array.sum()
+    if not (np.isfinite(array).all() and array.min() >= 0 and total > 0):
         raise ValueError("weights must be finite, >= 0 and not all zero")
-    array = array / array.sum()
+    array = array / total
     array = np.maximum(array, floor * array.max())
     normalised: np.ndarray = array / array.sum()
     return normalised
