@@ -56,7 +56,8 @@ table has one, and these lane loops elsewhere.
 
 Measured (planar cube, ``nx = nlam + nu = 10``, ``T = 7``, one core, load average below 1,
 2-core EPYC VM): one group of 2 rho values for 16 samples (32 lanes) 0.15 ms with the lane
-loops, 0.065 ms with the generated step; 10 rho values for one sample 0.087 and 0.033 ms.
+loops, 0.053-0.063 ms with the generated step (and the lane setup by runs,
+:func:`.compiled_lanes.scale_lanes`); 10 rho values for one sample 0.087 and 0.032 ms.
 :func:`factor_flops` counts what either executes.
 
 Every kernel takes its scalars in the arrays' dtype (``zero``, ``one`` and the rho-derived
