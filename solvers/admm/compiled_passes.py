@@ -136,11 +136,7 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
     x0, gx, gT = vectors[0], vectors[1], vectors[2]
     g2 = consts[:ny]
     two_rho_eta = consts[ny]
-    dw = np.empty((T, ns, n), dt)  # delta - w
-    for j in range(lanes):
-        for k in range(T):
-            for a in range(ns):
-                dw[k, a, j] = delta[j, k, a] - w[j, k, a]
+    dw = _difference_in_lanes(delta, w)
     gy, tt = np.empty((T, ny, n), dt), np.empty((T, nv, n), dt)
     zt = np.empty((T + 1, ns, n), dt)  # z with samples last (row T: terminal x)
     eta, e, r = np.empty((nlam, n), dt), np.empty((nx, n), dt), np.empty((nv, n), dt)
@@ -240,12 +236,7 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
             for b in range(nlam):
                 for j in range(lanes):
                     zt[k, ny + b, j] += Mt[b, a, j] * zt[k, a, j]
-    for j in range(lanes):
-        for k in range(T):
-            for a in range(ns):
-                z_steps[j, k, a] = zt[k, a, j]
-        for a in range(nx):
-            z_terminal[j, a] = zt[T, a, j]
+    _from_lanes(zt, z_steps, z_terminal)
     return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, nlam, consts, p,
                                shared, box, zero)
 
@@ -275,6 +266,31 @@ def _solve_project_samples(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray
 
 
 @_jit
+def _difference_in_lanes(delta: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``delta - w`` (n, T, ns) with the samples last, (T, ns, n): the passes' lanes."""
+    n, T, ns = delta.shape
+    dw = np.empty((T, ns, n), delta.dtype)
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                dw[k, a, j] = delta[j, k, a] - w[j, k, a]
+    return dw
+
+
+@_jit
+def _from_lanes(zt: np.ndarray, z_steps: np.ndarray, z_terminal: np.ndarray) -> None:
+    """``z`` of the passes' lanes, ``zt`` (T + 1, ns, n), into ``z_steps`` (n, T, ns) and
+    ``z_terminal`` (n, nx) (row ``T`` of ``zt``)."""
+    n, T, ns = z_steps.shape
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                z_steps[j, k, a] = zt[k, a, j]
+        for a in range(z_terminal.shape[1]):
+            z_terminal[j, a] = zt[T, a, j]
+
+
+@_jit
 def _generated_passes(address: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
                       Mt: np.ndarray, consts: np.ndarray, Y: np.ndarray, L: np.ndarray,
                       Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, index: int,
@@ -286,22 +302,11 @@ def _generated_passes(address: int, vectors: np.ndarray, delta: np.ndarray, w: n
     last, the passes into ``zt`` (T + 1, ns, n), ``z`` copied out, then
     :func:`_project_and_update`."""
     n, T, ns = delta.shape
-    nx = Y.shape[2]
     o = index * n
-    dw = np.empty((T, ns, n), delta.dtype)
-    for j in range(n):
-        for k in range(T):
-            for a in range(ns):
-                dw[k, a, j] = delta[j, k, a] - w[j, k, a]
     zt = np.empty((T + 1, ns, n), delta.dtype)
-    call_passes(address, dw, Mt, consts, vectors, Y[:, :, :, o:], L[:, :, :, o:],
-                Sd[:, :, o:], D[:, o:], ABd[:, :, o:], zt, n)
-    for j in range(n):
-        for k in range(T):
-            for a in range(ns):
-                z_steps[j, k, a] = zt[k, a, j]
-        for a in range(nx):
-            z_terminal[j, a] = zt[T, a, j]
+    call_passes(address, _difference_in_lanes(delta, w), Mt, consts, vectors,
+                Y[:, :, :, o:], L[:, :, :, o:], Sd[:, :, o:], D[:, o:], ABd[:, :, o:], zt, n)
+    _from_lanes(zt, z_steps, z_terminal)
     return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, Mt.shape[0], consts,
                                p, shared, box, zero)
 
