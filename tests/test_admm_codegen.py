@@ -181,3 +181,20 @@ def test_vector_width(lanes: int, dtype: Any, bits: int, width: int,
                       monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(codegen, "_host_vector_bits", lambda: bits)
     assert codegen.vector_width(lanes, dtype) == width
+
+
+def test_the_disk_cache_is_keyed_by_the_cpu(tmp_path: Any,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """Object code compiled for one CPU (name and instruction-set features) is not loaded on
+    another: it may use instructions the other lacks."""
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    _forget_generated(monkeypatch)
+    pattern, S, ABd, Hy = _step_inputs(2, 2, 4, 1.0, np.float64, seed=8)
+    compiled = codegen.CODEGEN.compiled
+    _generated_step(1, 2, 2, pattern, S.copy(), ABd, Hy)
+    machine, cpu = codegen._target_machine()
+    monkeypatch.setattr(codegen, "_TARGET", [(machine, cpu + " -avx512f")])
+    _forget_generated(monkeypatch)
+    _generated_step(1, 2, 2, pattern, S.copy(), ABd, Hy)
+    assert codegen.CODEGEN.compiled == compiled + 2
+    assert len(list((tmp_path / "c3bench_codegen").glob("*.o"))) == 2

@@ -28,12 +28,12 @@ compare them on random structures.
 **Cost.** Generating and compiling the planar cube's step (``nx = nv = 10``, 77 structural
 nonzeros, about 7,000 LLVM values) takes 0.4-0.6 s per (structure, lane stride, precision),
 once per machine: the object code is kept on disk, where numba keeps its cache
-(``NUMBA_CACHE_DIR``, else ``__pycache__`` beside this file), keyed by the IR, the CPU and
-LLVM's version. A later process loads it in about 2 ms. The seconds spent
-(:data:`CODEGEN`) count as compile time, like numba's JIT. ``C3BENCH_CODEGEN=0`` in the
-environment switches the generated code off; the lane loops then run everything. A failure
-to generate or compile does the same and is recorded in ``CODEGEN.failures``. It never
-changes a result.
+(``NUMBA_CACHE_DIR``, else ``__pycache__`` beside this file), keyed by the IR, the CPU (its
+name and instruction-set features) and LLVM's version. A later process loads it in about 2
+ms. The seconds spent (:data:`CODEGEN`) count as compile time, like numba's JIT.
+``C3BENCH_CODEGEN=0`` in the environment switches the generated code off; the lane loops
+then run everything. A failure to generate or compile does the same and is recorded in
+``CODEGEN.failures``. It never changes a result.
 
 Measured on the 2-core EPYC VM (znver4, load average below 1), seven backward steps, bit for
 bit equal to the lane loops:
@@ -312,7 +312,7 @@ exit:
 
 
 # --- compilation -------------------------------------------------------------------------------
-_TARGET: list[Any] = []
+_TARGET: list[tuple[Any, str]] = []
 _ENGINES: list[Any] = []
 """The execution engines holding the loaded code (alive as long as the process)."""
 _TABLES: dict[tuple[Any, ...], np.ndarray] = {}
@@ -320,16 +320,18 @@ _GENERATED: dict[tuple[Any, ...], tuple[int, int]] = {}
 """``(address, width)`` by what was generated (:func:`generated`)."""
 
 
-def _target_machine() -> Any:
+def _target_machine() -> tuple[Any, str]:
+    """LLVM's target machine for this CPU and the CPU's description (name and features: a
+    cached object is only loaded on a CPU that has every instruction it may use)."""
     if not _TARGET:
         try:
             cpu, features = llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten()
         except RuntimeError:
             cpu, features = "", ""
         target = llvm.Target.from_triple(llvm.get_process_triple())
-        _TARGET.append(target.create_target_machine(cpu=cpu, features=features, opt=2,
-                                                    reloc="pic", codemodel="jitdefault",
-                                                    jit=True))
+        _TARGET.append((target.create_target_machine(cpu=cpu, features=features, opt=2,
+                                                     reloc="pic", codemodel="jitdefault",
+                                                     jit=True), f"{cpu} {features}"))
     return _TARGET[0]
 
 
@@ -341,10 +343,10 @@ def _cache_dir() -> Path:
 def _object_code(ir_text: str) -> bytes:
     """The object code of ``ir_text`` for this CPU: from the disk cache, or compiled (and
     kept there when the directory is writable)."""
-    machine = _target_machine()
+    machine, cpu = _target_machine()
     key = hashlib.sha256("\0".join((str(FORMAT), str(llvm.llvm_version_info),
-                                    str(machine.triple), llvm.get_host_cpu_name(),
-                                    str(machine.target_data), ir_text)).encode()).hexdigest()
+                                    str(machine.triple), cpu, str(machine.target_data),
+                                    ir_text)).encode()).hexdigest()
     path = _cache_dir() / f"{key}.o"
     if path.is_file():
         CODEGEN.loaded += 1
@@ -368,7 +370,7 @@ def _object_code(ir_text: str) -> bytes:
 
 def _address(ir_text: str, function: str) -> int:
     """Load the object code of ``ir_text`` into an execution engine; ``function``'s address."""
-    engine = llvm.create_mcjit_compiler(llvm.parse_assembly(""), _target_machine())
+    engine = llvm.create_mcjit_compiler(llvm.parse_assembly(""), _target_machine()[0])
     engine.add_object_file(llvm.ObjectFileRef.from_data(_object_code(ir_text)))
     engine.finalize_object()
     _ENGINES.append(engine)
