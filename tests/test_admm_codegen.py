@@ -26,7 +26,6 @@ _SIGNATURE = ctypes.CFUNCTYPE(None, *([ctypes.c_void_p] * 7), ctypes.c_int64, ct
 
 
 def _forget_generated(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(codegen, "_TABLES", {})
     monkeypatch.setattr(codegen, "_GENERATED", {})
 
 

@@ -64,8 +64,8 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["CODEGEN", "ENV_SWITCH", "Emitter", "call_step", "enabled", "generated", "step_ir",
-           "step_table", "vector_width"]
+__all__ = ["CODEGEN", "ENV_SWITCH", "Emitter", "call_step", "call_through_address", "enabled",
+           "generated", "step_ir", "step_table", "vector_width"]
 
 ENV_SWITCH = "C3BENCH_CODEGEN"
 """Environment variable: ``0``, ``off`` or ``false`` switches the generated code off."""
@@ -315,7 +315,6 @@ exit:
 _TARGET: list[tuple[Any, str]] = []
 _ENGINES: list[Any] = []
 """The execution engines holding the loaded code (alive as long as the process)."""
-_TABLES: dict[tuple[Any, ...], np.ndarray] = {}
 _GENERATED: dict[tuple[Any, ...], tuple[int, int]] = {}
 """``(address, width)`` by what was generated (:func:`generated`)."""
 
@@ -402,16 +401,14 @@ def step_table(column_start: np.ndarray, column_rows: np.ndarray, nx: int, nv: i
     """The generated steps for a structure and precision: an int64 table (size, 2) whose row
     ``lanes`` holds ``(address, width)`` of the step for arrays with ``lanes`` lanes
     (:func:`step_ir`), ``(0, 0)`` where none is generated. Rows for ``lane_counts`` are
-    generated now (or loaded); the table is memoised per structure and precision, so that the
-    same array comes back with rows added. With :func:`enabled` off: a table of zeros."""
+    generated now (or loaded once per process, :func:`generated`). With :func:`enabled` off:
+    a table of zeros."""
+    table = np.zeros((size, 2), np.int64)
     if not enabled():
-        return np.zeros((size, 2), np.int64)
+        return table
     key = (nx, nv, np.dtype(dtype).char, column_start.tobytes(), column_rows.tobytes())
-    table = _TABLES.get(key)
-    if table is None:
-        table = _TABLES[key] = np.zeros((size, 2), np.int64)
     for lanes in lane_counts:
-        if table[lanes, 0] == 0 and lanes % 4 == 0:
+        if lanes % 4 == 0:
             width = vector_width(lanes, dtype)
             table[lanes] = generated(
                 ("step", lanes, width, *key),
@@ -420,25 +417,30 @@ def step_table(column_start: np.ndarray, column_rows: np.ndarray, nx: int, nv: i
     return table
 
 
+def call_through_address(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+    """numba intrinsic code of ``call(address, *operands)``: call the ``void`` function at the
+    run-time ``address`` with each array operand's data pointer and each scalar operand as an
+    int64 (the calling convention of :func:`step_ir` and of
+    :func:`~c3bench.solvers.admm.compiled_passes_codegen.passes_ir`)."""
+    opaque = ir.IntType(8).as_pointer()
+    operands = []
+    for kind, value in zip(sig.args[1:], args[1:], strict=True):
+        if isinstance(kind, types.Array):
+            data = context.make_array(kind)(context, builder, value).data
+            operands.append(builder.bitcast(data, opaque))
+        else:
+            operands.append(context.cast(builder, value, kind, types.int64))
+    function = ir.FunctionType(ir.VoidType(), [operand.type for operand in operands])
+    builder.call(builder.inttoptr(args[0], function.as_pointer()), operands)
+    return context.get_dummy_value()
+
+
 @intrinsic
 def _call_step(typingctx: Any, address: Any, S: Any, ABd: Any, Hy: Any, Y: Any, L: Any,
                Sd: Any, fb: Any, k: Any, count: Any) -> Any:
     """Call the generated step at ``address`` (:func:`step_ir`) on the arrays' data for
     lanes ``0 .. count`` (numba intrinsic: the address is a run-time value)."""
-    signature = types.void(address, S, ABd, Hy, Y, L, Sd, fb, k, count)
-
-    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
-        integer, opaque = ir.IntType(64), ir.IntType(8).as_pointer()
-        function = ir.FunctionType(ir.VoidType(), [opaque] * 7 + [integer] * 2)
-        pointer = builder.inttoptr(args[0], function.as_pointer())
-        data = [builder.bitcast(context.make_array(kind)(context, builder, value).data, opaque)
-                for kind, value in zip(sig.args[1:8], args[1:8], strict=True)]
-        scalars = [context.cast(builder, value, kind, types.int64)
-                   for kind, value in zip(sig.args[8:], args[8:], strict=True)]
-        builder.call(pointer, data + scalars)
-        return context.get_dummy_value()
-
-    return signature, codegen
+    return types.void(address, S, ABd, Hy, Y, L, Sd, fb, k, count), call_through_address
 
 
 call_step = cast(Callable[..., None], _call_step)

@@ -35,11 +35,15 @@ from functools import partial
 from typing import Any, cast
 
 import numpy as np
-from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from c3bench.solvers.admm.compiled_codegen import Emitter, generated, vector_width
+from c3bench.solvers.admm.compiled_codegen import (
+    Emitter,
+    call_through_address,
+    generated,
+    vector_width,
+)
 
 __all__ = ["FUNCTION", "call_passes", "passes_address", "passes_ir"]
 
@@ -230,20 +234,8 @@ def passes_address(nx: int, nv: int, nlam: int, T: int, pattern: Any, samples: i
 def _call_passes(typingctx: Any, address: Any, dw: Any, M: Any, consts: Any, vectors: Any,
                  Y: Any, L: Any, Sd: Any, D: Any, ABd: Any, zt: Any, count: Any) -> Any:
     """Call the generated passes at ``address`` on the arrays' data (numba intrinsic)."""
-    arrays = (dw, M, consts, vectors, Y, L, Sd, D, ABd, zt)
-    signature = types.void(address, *arrays, count)
-
-    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
-        integer, opaque = ir.IntType(64), ir.IntType(8).as_pointer()
-        function = ir.FunctionType(ir.VoidType(), [opaque] * len(arrays) + [integer])
-        pointer = builder.inttoptr(args[0], function.as_pointer())
-        data = [builder.bitcast(context.make_array(kind)(context, builder, value).data, opaque)
-                for kind, value in zip(sig.args[1:-1], args[1:-1], strict=True)]
-        count_value = context.cast(builder, args[-1], sig.args[-1], types.int64)
-        builder.call(pointer, [*data, count_value])
-        return context.get_dummy_value()
-
-    return signature, codegen
+    signature = types.void(address, dw, M, consts, vectors, Y, L, Sd, D, ABd, zt, count)
+    return signature, call_through_address
 
 
 call_passes = cast(Callable[..., None], _call_passes)
