@@ -93,52 +93,103 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
                   p: np.ndarray, shared: bool, box: np.ndarray, zero: Any, z_steps: np.ndarray,
                   z_terminal: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray,
                   generated: np.ndarray) -> bool:
-    """QP step (linear passes of factorisation slot ``index``: lanes ``index n .. index n + n``
-    of ``Y`` (T, nv, nx, lanes) etc.,
-    :func:`c3bench.solvers.admm.compiled_kernels.factorize_batch`), projection and dual update
-    for every sample; ``False`` when the QP solution is not finite. ``vectors`` = ``(x0, g_x,
-    g_T)`` (3, nx), ``Mc`` = ``[M c]`` (n, nlam, ny + 1), ``Mt`` the same with the samples
-    last (nlam, ny + 1, n), ``consts`` = ``(-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam),
-    sqrt(rho_eta))``; the structural nonzeros of ``[A B_v d]`` by column and by
-    row (:class:`~c3bench.solvers.admm.compiled_kernels.Structure`): every product with it
-    skips the rest.
+    """:func:`iterate_in_lanes` on iterates with the samples first: ``delta``, ``w``,
+    ``new_delta``, ``new_w`` and ``z_steps`` (n, T, ns), ``z_terminal`` (n, nx) (the
+    iteration-by-iteration loop's arrays); ``False`` when the QP solution is not finite."""
+    n, T, ns = delta.shape
+    zt = np.empty((T + 1, ns, n), delta.dtype)
+    finite = iterate_in_lanes(vectors, delta.transpose(1, 2, 0), w.transpose(1, 2, 0), Mc, Mt,
+                              consts, Y, L, Sd, D, ABd, index, column_start, column_rows,
+                              row_start, row_columns, p, shared, box, zero, zt,
+                              new_delta.transpose(1, 2, 0), new_w.transpose(1, 2, 0),
+                              generated)
+    _from_lanes(zt, z_steps, z_terminal)
+    return finite
+
+
+@_jit
+def iterate_in_lanes(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.ndarray,
+                     Mt: np.ndarray, consts: np.ndarray, Y: np.ndarray, L: np.ndarray,
+                     Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, index: int,
+                     column_start: np.ndarray, column_rows: np.ndarray, row_start: np.ndarray,
+                     row_columns: np.ndarray, p: np.ndarray, shared: bool, box: np.ndarray,
+                     zero: Any, zt: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray,
+                     generated: np.ndarray) -> bool:
+    """One ADMM iteration for every sample, the iterates with the samples last: QP step
+    (linear passes of factorisation slot ``index``: lanes ``index n .. index n + n`` of ``Y``
+    (T, nv, nx, lanes) etc., :func:`c3bench.solvers.admm.compiled_kernels.factorize_batch`)
+    into ``zt`` (T + 1, ns, n; row ``T``: the terminal ``x``), projection into ``new_delta``
+    and dual update into ``new_w``; ``delta``, ``w``, ``new_delta``, ``new_w`` are (T, ns, n)
+    (any strides: :func:`solve_project` passes transposed views). ``False`` when the QP
+    solution is not finite. ``vectors`` = ``(x0, g_x, g_T)`` (3, nx), ``Mc`` = ``[M c]`` (n,
+    nlam, ny + 1), ``Mt`` the same with the samples last (nlam, ny + 1, n), ``consts`` =
+    ``(-2 G_y (ny,), 2 rho_eta, sqrt(rho_lam), sqrt(rho_eta))``; the structural nonzeros of
+    ``[A B_v d]`` by column and by row
+    (:class:`~c3bench.solvers.admm.compiled_kernels.Structure`): every product with it skips
+    the rest.
+
+    The passes (:func:`_passes_in_lanes`) run with the samples as vector lanes from
+    :data:`LANE_SOLVE` samples on, below one sample at a time (:func:`_solve_sample`);
+    ``generated`` = ``(address, width, factor lanes, samples)`` of the passes generated for
+    this structure and these sizes
+    (:func:`c3bench.solvers.admm.compiled_passes_codegen.passes_address`; address 0: none)
+    replace the lane loops (bit for bit the same ``z``) when the sizes agree. Then
+    :func:`_project_and_update`. Keeping the iterates in this layout across a planned
+    schedule (:func:`c3bench.solvers.admm.compiled_plan.run_plan`) saves transposing them
+    in and out of the passes' layout every iteration (measured at 16 samples: 9.4 -> 3 us of
+    an iteration's 22 us).
+    """
+    T, n = delta.shape[0], delta.shape[2]
+    nlam = Mt.shape[0]
+    nx = Y.shape[2]
+    if generated[0] != 0 and generated[2] == Y.shape[3] and generated[3] == n and \
+            n % generated[1] == 0:
+        o = index * n
+        call_passes(generated[0], _difference(delta, w), Mt, consts, vectors, Y[:, :, :, o:],
+                    L[:, :, :, o:], Sd[:, :, o:], D[:, o:], ABd[:, :, o:], zt, n)
+    elif n >= LANE_SOLVE:
+        _passes_in_lanes(vectors, _difference(delta, w), Mt, consts, Y, L, Sd, D, ABd, index,
+                         column_start, column_rows, row_start, row_columns, zero, zt)
+    else:
+        work = _Work(delta.dtype, T, nx, Y.shape[1], nlam)
+        z_steps, z_terminal = zt[:T].transpose(2, 0, 1), zt[T].transpose()
+        samples_delta, samples_w = delta.transpose(2, 0, 1), w.transpose(2, 0, 1)
+        for j in range(n):
+            lane = index * n + j
+            _solve_sample(j, vectors, samples_delta, samples_w, Mc, consts, Y[:, :, :, lane],
+                          L[:, :, :, lane], Sd[:, :, lane], D[:, lane], ABd[:, :, lane],
+                          column_start, column_rows, row_start, row_columns, zero, z_steps,
+                          z_terminal, work)
+    return _project_and_update(zt, w, new_delta, new_w, nx, nlam, consts, p, shared, box,
+                               zero)
+
+
+@_jit
+def _passes_in_lanes(vectors: np.ndarray, dw: np.ndarray, Mt: np.ndarray, consts: np.ndarray,
+                     Y: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray,
+                     ABd: np.ndarray, index: int, column_start: np.ndarray,
+                     column_rows: np.ndarray, row_start: np.ndarray, row_columns: np.ndarray,
+                     zero: Any, zt: np.ndarray) -> None:
+    """The linear passes of :func:`iterate_in_lanes` with every sample a lane (the innermost
+    loops run over the samples, the last axis of the factors and of the local arrays), from
+    ``dw = delta - w`` (T, ns, n) into ``zt`` (T + 1, ns, n).
 
     Gradient ``g_y = -2 G_y (delta - w)_y + (g_x, 0) + 2 rho_eta M^T (c - (delta - w)_eta)``,
     scaled by ``D``; backward ``r = g_v + B_v^T e``, ``t_k = L^-1 r``, ``e <- S_k d + g_x +
     A^T e - Y^T t_k`` (``K^T r = -Y^T L^-1 r``); forward ``v = -L^-T (Y x + t_k)`` (``K x +
-    kk``), ``x <- A x + B_v v + d``; ``eta = M y + c``; then the C3+ projection of ``z + w``
-    (:func:`_project`) and the loop's dual update ``new_w = w + z - new_delta``
-    (:func:`c3bench.solvers.admm.loop.dual_update`, compiled, entry by entry). From
-    :data:`LANE_SOLVE` samples on every sample is a lane (the innermost loops run over the
-    samples, the last axis of the factors and of the local arrays); below, one sample at a
-    time (:func:`_solve_project_samples`). ``generated`` = ``(address, width, factor lanes,
-    samples)`` of the passes generated for this structure and these sizes
-    (:func:`c3bench.solvers.admm.compiled_passes_codegen.passes_address`; address 0: none),
-    which replace the loops (:func:`_generated_passes`, bit for bit the same ``z``) when the
-    sizes agree.
+    kk``), ``x <- A x + B_v v + d``; ``eta = M y + c``.
     """
-    n, T, ns = delta.shape
-    if generated[0] != 0 and generated[2] == Y.shape[3] and generated[3] == n and \
-            n % generated[1] == 0:
-        return _generated_passes(generated[0], vectors, delta, w, Mt, consts, Y, L, Sd, D, ABd,
-                                 index, p, shared, box, zero, z_steps, z_terminal, new_delta,
-                                 new_w)
-    if n < LANE_SOLVE:
-        return _solve_project_samples(vectors, delta, w, Mc, consts, Y, L, Sd, D, ABd, index,
-                                      column_start, column_rows, row_start, row_columns, p,
-                                      shared, box, zero, z_steps, z_terminal, new_delta, new_w)
+    T, n = dw.shape[0], dw.shape[2]
     nx, nv = Y.shape[2], Y.shape[1]
-    nlam = Mc.shape[1]
+    nlam = Mt.shape[0]
     ny = nx + nv
-    dt = delta.dtype
+    dt = dw.dtype
     lanes = np.uint64(n)  # unsigned lane indices: numba adds no negative-index wraparound
     o = np.uint64(index) * lanes  # slot index's samples: lanes o .. o + n of the factors
     x0, gx, gT = vectors[0], vectors[1], vectors[2]
     g2 = consts[:ny]
     two_rho_eta = consts[ny]
-    dw = _difference_in_lanes(delta, w)
     gy, tt = np.empty((T, ny, n), dt), np.empty((T, nv, n), dt)
-    zt = np.empty((T + 1, ns, n), dt)  # z with samples last (row T: terminal x)
     eta, e, r = np.empty((nlam, n), dt), np.empty((nx, n), dt), np.empty((nv, n), dt)
     v, x, xn = np.empty((nv, n), dt), np.empty((nx, n), dt), np.empty((nx, n), dt)
     for k in range(T):  # gradient
@@ -236,44 +287,17 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
             for b in range(nlam):
                 for j in range(lanes):
                     zt[k, ny + b, j] += Mt[b, a, j] * zt[k, a, j]
-    _from_lanes(zt, z_steps, z_terminal)
-    return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, nlam, consts, p,
-                               shared, box, zero)
 
 
 @_jit
-def _solve_project_samples(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
-                           Mc: np.ndarray, consts: np.ndarray, Y: np.ndarray, L: np.ndarray,
-                           Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, index: int,
-                           column_start: np.ndarray, column_rows: np.ndarray,
-                           row_start: np.ndarray, row_columns: np.ndarray, p: np.ndarray,
-                           shared: bool, box: np.ndarray, zero: Any, z_steps: np.ndarray,
-                           z_terminal: np.ndarray, new_delta: np.ndarray, new_w: np.ndarray
-                           ) -> bool:
-    """:func:`solve_project` one sample at a time (faster below :data:`LANE_SOLVE` samples,
-    where vectors over samples would be too short); ``False`` when the QP solution is not
-    finite.
-    """
-    n, T = delta.shape[0], delta.shape[1]
-    work = _Work(delta.dtype, T, Y.shape[2], Y.shape[1], Mc.shape[1])
-    for j in range(n):
-        lane = index * n + j
-        _solve_sample(j, vectors, delta, w, Mc, consts, Y[:, :, :, lane], L[:, :, :, lane],
-                      Sd[:, :, lane], D[:, lane], ABd[:, :, lane], column_start, column_rows,
-                      row_start, row_columns, zero, z_steps, z_terminal, work)
-    return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, Mc.shape[1], consts,
-                               p, shared, box, zero)
-
-
-@_jit
-def _difference_in_lanes(delta: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``delta - w`` (n, T, ns) with the samples last, (T, ns, n): the passes' lanes."""
-    n, T, ns = delta.shape
+def _difference(delta: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``delta - w`` (T, ns, n) into a new C-contiguous array (the passes' ``dw``)."""
+    T, ns, n = delta.shape
     dw = np.empty((T, ns, n), delta.dtype)
-    for j in range(n):
-        for k in range(T):
-            for a in range(ns):
-                dw[k, a, j] = delta[j, k, a] - w[j, k, a]
+    for k in range(T):
+        for a in range(ns):
+            for j in range(n):
+                dw[k, a, j] = delta[k, a, j] - w[k, a, j]
     return dw
 
 
@@ -291,47 +315,25 @@ def _from_lanes(zt: np.ndarray, z_steps: np.ndarray, z_terminal: np.ndarray) -> 
 
 
 @_jit
-def _generated_passes(address: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
-                      Mt: np.ndarray, consts: np.ndarray, Y: np.ndarray, L: np.ndarray,
-                      Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray, index: int,
-                      p: np.ndarray, shared: bool, box: np.ndarray, zero: Any,
-                      z_steps: np.ndarray, z_terminal: np.ndarray, new_delta: np.ndarray,
-                      new_w: np.ndarray) -> bool:
-    """:func:`solve_project` with the generated passes at ``address``
-    (:mod:`c3bench.solvers.admm.compiled_passes_codegen`): ``delta - w`` with the samples
-    last, the passes into ``zt`` (T + 1, ns, n), ``z`` copied out, then
-    :func:`_project_and_update`."""
-    n, T, ns = delta.shape
-    o = index * n
-    zt = np.empty((T + 1, ns, n), delta.dtype)
-    call_passes(address, _difference_in_lanes(delta, w), Mt, consts, vectors,
-                Y[:, :, :, o:], L[:, :, :, o:], Sd[:, :, o:], D[:, o:], ABd[:, :, o:], zt, n)
-    _from_lanes(zt, z_steps, z_terminal)
-    return _project_and_update(z_steps, z_terminal, w, new_delta, new_w, Mt.shape[0], consts,
-                               p, shared, box, zero)
-
-
-@_jit
-def _project_and_update(z_steps: np.ndarray, z_terminal: np.ndarray, w: np.ndarray,
-                        new_delta: np.ndarray, new_w: np.ndarray, nlam: int,
-                        consts: np.ndarray, p: np.ndarray, shared: bool, box: np.ndarray,
-                        zero: Any) -> bool:
-    """The end of every iteration of :func:`solve_project`: the projection of ``z + w``
-    (:func:`_project`) into ``new_delta`` and the dual update ``new_w = w + z - new_delta``
-    (entry by entry); ``False`` when an entry of the QP solution ``(z_steps, z_terminal)``
-    is not finite (tested entry by entry: a running sum of the entries, as before, was a
-    chain of dependent additions; 5.0 -> 3.8 us for this function at 16 samples)."""
-    n, T, ns = z_steps.shape
-    nx = z_terminal.shape[1]
-    _project(z_steps, w, new_delta, nx, nlam, consts[-2], consts[-1], p, shared, box, zero)
+def _project_and_update(zt: np.ndarray, w: np.ndarray, new_delta: np.ndarray,
+                        new_w: np.ndarray, nx: int, nlam: int, consts: np.ndarray,
+                        p: np.ndarray, shared: bool, box: np.ndarray, zero: Any) -> bool:
+    """The end of every iteration of :func:`iterate_in_lanes` (samples last): the projection
+    of ``z + w`` (:func:`_project`) into ``new_delta`` and the dual update ``new_w = w + z -
+    new_delta`` (entry by entry); ``False`` when an entry of the QP solution ``zt`` (T + 1,
+    ns, n; the terminal row's first ``nx``) is not finite (tested entry by entry: a running
+    sum of the entries, as before, was a chain of dependent additions)."""
+    T, ns, n = w.shape
+    _project(zt, w, new_delta, nx, nlam, consts[-2], consts[-1], p, shared, box, zero)
     finite = True
-    for j in range(n):
-        for k in range(T):
-            for a in range(ns):
-                finite &= abs(z_steps[j, k, a]) < np.inf  # False for NaN and infinities
-                new_w[j, k, a] = _dual_update(w[j, k, a], z_steps[j, k, a], new_delta[j, k, a])
-        for a in range(nx):
-            finite &= abs(z_terminal[j, a]) < np.inf
+    for k in range(T):
+        for a in range(ns):
+            for j in range(n):
+                finite &= abs(zt[k, a, j]) < np.inf  # False for NaN and infinities
+                new_w[k, a, j] = _dual_update(w[k, a, j], zt[k, a, j], new_delta[k, a, j])
+    for a in range(nx):
+        for j in range(n):
+            finite &= abs(zt[T, a, j]) < np.inf
     return finite
 
 
@@ -435,33 +437,35 @@ def _solve_sample(j: int, vectors: np.ndarray, delta: np.ndarray, w: np.ndarray,
 def _project(z: np.ndarray, w: np.ndarray, out: np.ndarray, nx: int, nlam: int,
              sqrt_lam: Any, sqrt_eta: Any, p: np.ndarray, shared: bool, box: np.ndarray,
              zero: Any) -> None:
-    """C3+ projection of ``v = z + w`` (n, T, ns) into ``out``: ``x`` clipped to the box
-    ``box`` (2, nx + nu) = (lower, upper) of one step's ``(x, u)`` (``+-inf`` where
-    unbounded); every pair by the one closed form
-    (:func:`c3bench.solvers.admm.projection.make_c3plus_pairs`, compiled for scalars); ``u``
-    replaced, when ``shared`` and ``n > 1``, by the weighted mean ``sum_j p_j v_{j,u}``, then
-    clipped to the box."""
-    n, T, ns = z.shape
+    """C3+ projection of ``v = z + w`` (samples last: ``w`` and ``out`` (T, ns, n), ``z`` at
+    least T rows) into ``out``: ``x`` clipped to the box ``box`` (2, nx + nu) = (lower,
+    upper) of one step's ``(x, u)`` (``+-inf`` where unbounded); every pair by the one closed
+    form (:func:`c3bench.solvers.admm.projection.make_c3plus_pairs`, compiled for scalars);
+    ``u`` replaced, when ``shared`` and ``n > 1``, by the weighted mean ``sum_j p_j v_{j,u}``
+    (summed in sample order), then clipped to the box."""
+    T, ns, n = w.shape
     nu = ns - nx - 2 * nlam
-    for j in range(n):
-        for k in range(T):
-            for a in range(ns):
-                out[j, k, a] = z[j, k, a] + w[j, k, a]
-            for a in range(nx):
-                out[j, k, a] = min(max(out[j, k, a], box[0, a]), box[1, a])
-            for b in range(nlam):
-                out[j, k, nx + b], out[j, k, ns - nlam + b] = _c3plus_pair(
-                    out[j, k, nx + b], out[j, k, ns - nlam + b], sqrt_lam, sqrt_eta)
     for k in range(T):
+        for a in range(ns):
+            for j in range(n):
+                out[k, a, j] = z[k, a, j] + w[k, a, j]
+        for a in range(nx):
+            lower, upper = box[0, a], box[1, a]
+            for j in range(n):
+                out[k, a, j] = min(max(out[k, a, j], lower), upper)
+        for b in range(nlam):
+            for j in range(n):
+                out[k, nx + b, j], out[k, ns - nlam + b, j] = _c3plus_pair(
+                    out[k, nx + b, j], out[k, ns - nlam + b, j], sqrt_lam, sqrt_eta)
         for a in range(nx + nlam, nx + nlam + nu):
             lower, upper = box[0, a - nlam], box[1, a - nlam]
             if shared and n > 1:
                 s = zero
                 for j in range(n):
-                    s += p[j] * out[j, k, a]
+                    s += p[j] * out[k, a, j]
                 s = min(max(s, lower), upper)
                 for j in range(n):
-                    out[j, k, a] = s
+                    out[k, a, j] = s
             else:
                 for j in range(n):
-                    out[j, k, a] = min(max(out[j, k, a], lower), upper)
+                    out[k, a, j] = min(max(out[k, a, j], lower), upper)

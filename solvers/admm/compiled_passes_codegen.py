@@ -1,6 +1,6 @@
 """Machine code generated for one LCS structure: the linear passes of a compiled ADMM iteration.
 
-:func:`c3bench.solvers.admm.compiled_passes.solve_project` computes, for every sample, the
+:func:`c3bench.solvers.admm.compiled_passes.iterate_in_lanes` computes, for every sample, the
 gradient of the QP step, the backward and forward passes of the Riccati recursion and
 ``eta`` as numba loops (over samples as vector lanes from
 :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE` samples on, a sample at a time

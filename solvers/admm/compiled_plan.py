@@ -8,7 +8,7 @@ hands the whole plan to the kernel (``run_plan``), and :func:`run_plan` here run
 
 1. at the first iteration of each group of the plan (the group buffer's ``m`` rho values),
    :func:`c3bench.solvers.admm.compiled_kernels.factorize_batch` of the group;
-2. the iteration itself, :func:`c3bench.solvers.admm.compiled_passes.solve_project` (QP step,
+2. the iteration itself, :func:`c3bench.solvers.admm.compiled_passes.iterate_in_lanes` (QP step,
    projection and the loop's dual update, compiled) with ``plan[i]``'s factors;
 3. before the next iteration, the loop's rescaling of the scaled dual,
    :func:`c3bench.solvers.admm.loop.scale_dual` by ``ratios[i]``
@@ -18,8 +18,11 @@ Nothing here is a second copy of the algorithm: every step is the loop's or the 
 definition, called in the loop's order. What the call saves is the Python between
 iterations (about 25 us per iteration: argument checks, dispatch of a 24-argument compiled
 call, the loop's bookkeeping, the rescaling in numpy), which was half of a one-sample
-control step. The iterates alternate between two preallocated sets, so that a failed
-iteration leaves the last completed one intact, as the iteration-by-iteration loop does.
+control step. The iterates alternate between two sets, so that a failed iteration leaves
+the last completed one intact, as the iteration-by-iteration loop does; between the first
+and the last iteration they are kept with the samples last, the layout of the passes
+(:func:`c3bench.solvers.admm.compiled_passes.iterate_in_lanes`), and transposed only on the
+way in and out.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ import numpy as np
 
 from c3bench.solvers.admm.compiled_kernels import factorize_batch
 from c3bench.solvers.admm.compiled_kernels import jit as _jit
-from c3bench.solvers.admm.compiled_passes import solve_project
+from c3bench.solvers.admm.compiled_passes import iterate_in_lanes
 from c3bench.solvers.admm.loop import scale_dual
 
 __all__ = ["FACTORISATION_FAILED", "NON_FINITE", "run_plan"]
@@ -60,14 +63,14 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
 
     ``bases`` (N, ny, ny), ``two_rho_eta`` (N,) and ``consts`` (N, ny + 3) are the plan's
     constants of :func:`~c3bench.solvers.admm.compiled_kernels.factorize_batch` and
-    :func:`~c3bench.solvers.admm.compiled_passes.solve_project`; ``Y`` ... ``failed`` the
+    :func:`~c3bench.solvers.admm.compiled_passes.iterate_in_lanes`; ``Y`` ... ``failed`` the
     group buffer (:class:`~c3bench.solvers.admm.compiled_factors.CompiledFactors`, ``m n``
     lanes: ``m`` is the group size); ``ratios`` (N - 1, ns);
     ``iterates`` (2, 3, n, T, ns): two sets of ``(delta, w, z_steps)``, set 0 holding the
     initial ``delta`` and ``w``; ``terminals`` (2, n, nx) the sets' ``z_terminal``; ``steps``
     the generated backward steps of :func:`~c3bench.solvers.admm.compiled_kernels.
     factorize_batch`, ``generated`` the generated passes of :func:`~c3bench.solvers.admm.
-    compiled_passes.solve_project`.
+    compiled_passes.iterate_in_lanes`.
 
     Returns ``(completed, set, code)``: the iterations completed, the set that holds the
     iterates after the last of them, and 0, :data:`FACTORISATION_FAILED` or
@@ -76,6 +79,10 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     N = bases.shape[0]
     n, T, ns = iterates.shape[2], iterates.shape[3], iterates.shape[4]
     group = failed.shape[0] // n
+    lanes = np.empty((2, 2, T, ns, n), iterates.dtype)  # (delta, w) sets, samples last
+    zts = np.empty((2, T + 1, ns, n), iterates.dtype)  # the sets' z (row T: terminal x)
+    _to_lanes(iterates[0, 0], lanes[0, 0])
+    _to_lanes(iterates[0, 1], lanes[0, 1])
     current = 0
     for i in range(N):
         slot = i % group
@@ -86,19 +93,48 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                             failed, steps)
         for j in range(n):
             if failed[slot * n + j] >= 0:
+                _store(lanes[current], zts[current], iterates[current], terminals[current])
                 return i, current, FACTORISATION_FAILED
         target = 1 - current
-        if not solve_project(vectors, iterates[current, 0], iterates[current, 1], Mc, Mt,
-                             consts[i], Y, L, Sd, D, ABd, slot, column_start, column_rows,
-                             row_start, row_columns, p, shared, box, zero,
-                             iterates[target, 2], terminals[target], iterates[target, 0],
-                             iterates[target, 1], generated):
+        if not iterate_in_lanes(vectors, lanes[current, 0], lanes[current, 1], Mc, Mt,
+                                consts[i], Y, L, Sd, D, ABd, slot, column_start, column_rows,
+                                row_start, row_columns, p, shared, box, zero, zts[target],
+                                lanes[target, 0], lanes[target, 1], generated):
+            _store(lanes[current], zts[current], iterates[current], terminals[current])
             return i, current, NON_FINITE
         current = target
         if i + 1 < N:
-            w = iterates[current, 1]
-            for j in range(n):
-                for k in range(T):
-                    for a in range(ns):
-                        w[j, k, a] = _scale_dual(w[j, k, a], ratios[i, a])
+            w = lanes[current, 1]
+            for k in range(T):
+                for a in range(ns):
+                    ratio = ratios[i, a]
+                    for j in range(n):
+                        w[k, a, j] = _scale_dual(w[k, a, j], ratio)
+    _store(lanes[current], zts[current], iterates[current], terminals[current])
     return N, current, 0
+
+
+@_jit
+def _to_lanes(samples_first: np.ndarray, samples_last: np.ndarray) -> None:
+    """``(n, T, ns)`` into ``(T, ns, n)``."""
+    n, T, ns = samples_first.shape
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                samples_last[k, a, j] = samples_first[j, k, a]
+
+
+@_jit
+def _store(lanes: np.ndarray, zt: np.ndarray, iterates: np.ndarray, terminal: np.ndarray
+           ) -> None:
+    """One set's ``(delta, w)`` (2, T, ns, n) and ``z`` (T + 1, ns, n) back into ``iterates``
+    (3, n, T, ns) = ``(delta, w, z_steps)`` and ``terminal`` (n, nx)."""
+    n, T, ns = iterates.shape[1], iterates.shape[2], iterates.shape[3]
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                iterates[0, j, k, a] = lanes[0, k, a, j]
+                iterates[1, j, k, a] = lanes[1, k, a, j]
+                iterates[2, j, k, a] = zt[k, a, j]
+        for a in range(terminal.shape[1]):
+            terminal[j, a] = zt[T, a, j]
