@@ -41,7 +41,11 @@ MFLOP (``admm_mflop``: the work of the numpy algorithm), and ``admm_mflop_execut
 flops the backend executed (the compiled kernel counts its own, which are fewer: Cholesky
 instead of an inverse, symmetric products, structural zeros of ``[A B_v d]`` skipped; the
 model's for the numpy and JAX paths), so the summary shows the achieved GFLOP/s (executed
-flops per second) and its share of the matmul rate.
+flops per second) and its share of the matmul rate. That rate is measured twice: the best of
+15 products at the start (``matmul_gflops_*``, the machine's peak) and through the run
+(:class:`bench.perf_flops.MatmulProbe`, ``matmul_run_gflops_*``: once per timed round of each
+sample count, the median over its rounds), the statistic a median step time compares with;
+the summary gives the share of each.
 **Ratios** (:mod:`bench.perf_summary`): each configuration's median time over that of
 ``c3plus-riccati`` float64 and of ``c3-osqp`` at the same samples in the same run.
 
@@ -60,8 +64,9 @@ before it settles (measured on the 2-core EPYC VM, ADMM of the compiled one-samp
 reference controller's step: 0.45, 0.36, 0.35, 0.32, 0.32 ms; numpy 2.81, 2.70, 2.64, 2.60,
 2.56 ms), and the settled time is what a controller pays in its loop (the same step with 50
 plant steps before each: 0.29 and 2.59 ms). Cold and warm steps are summarised apart and every
-ratio compares like with like (cold with cold, warm with warm). With one configuration at a
-sample count every step is warm. ``repeats`` is the number of timed rounds, after ``warmup``
+ratio compares like with like (cold with cold, warm with warm). Before the blocks of each
+timed round the matmul probe runs (below), so the first step of a block is cold with one
+configuration at a sample count too. ``repeats`` is the number of timed rounds, after ``warmup``
 rounds (default 1) that are not recorded. A progress bar (stderr) counts the steps of each
 sample count.
 
@@ -110,6 +115,7 @@ from c3bench.bench.perf_flops import (
     MATMUL_REPEATS,
     MATMUL_SIZE,
     MachineRates,
+    MatmulProbe,
     admm_flops,
     machine_rates,
 )
@@ -242,7 +248,8 @@ def _row(run: _Run, config: Configuration, **values: Any) -> dict[str, Any]:
         "weighting_ms": math.nan, "admm_ms": math.nan, "total_no_weighting_ms": math.nan,
         "admm_mflop": math.nan, "matmul_gflops_f64": run.rates.float64,
         "matmul_gflops_f32": run.rates.float32, "compile_s": math.nan,
-        "admm_mflop_executed": math.nan, "cache": "",
+        "admm_mflop_executed": math.nan, "cache": "", "matmul_run_gflops_f64": math.nan,
+        "matmul_run_gflops_f32": math.nan,
     }
     row.update(values)
     return row
@@ -303,11 +310,10 @@ def _time_step(run: _Run, m: _Measurement, step: int, cache: CacheState, load: f
         admm_mflop_executed=executed, cache=str(cache)))
 
 
-def _block_states(measurements: list[_Measurement]) -> tuple[CacheState, ...]:
-    """The cache state of each step of a block: cold, then warm; warm throughout when only one
-    configuration is measured (nothing else runs between its steps)."""
-    first = CacheState.COLD if len(measurements) > 1 else CacheState.WARM
-    return (first,) + (CacheState.WARM,) * (STEPS_PER_ROUND - 1)
+def _block_states() -> tuple[CacheState, ...]:
+    """The cache state of each step of a block: cold (it follows another configuration's block
+    or the round's matmul probe), then warm."""
+    return (CacheState.COLD,) + (CacheState.WARM,) * (STEPS_PER_ROUND - 1)
 
 
 def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: bool = False
@@ -315,8 +321,10 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
     """Warm-up, then the timed rounds of every configuration of one sample count: in round
     ``r`` each configuration in turn runs a block of :data:`STEPS_PER_ROUND` consecutive steps
     (module docstring), so that a slow phase of a shared machine falls on every backend alike
-    and each configuration has a cold and a warm step per round. A backend that raises stops
-    (its ``failure`` says why); the others go on."""
+    and each configuration has a cold and a warm step per round; each timed round starts with
+    a sample of the matmul rate (:class:`bench.perf_flops.MatmulProbe`), stored in every row
+    as the median over the rounds. A backend that raises stops (its ``failure`` says why);
+    the others go on."""
     from c3bench.solvers.timing import blas_threads, single_thread_blas
 
     warmup = run.context.warmup
@@ -324,11 +332,14 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
     bar = progress_bar(progress, STEPS_PER_ROUND * sum(warmup + m.repeats
                                                        for m in measurements),
                        f"perf samples={samples}", "step")
-    states = _block_states(measurements)
+    states = _block_states()
+    probe = MatmulProbe()
     gc.collect()
     with single_thread_blas():
         threads, load = blas_threads(), load_average()
         for r in range(warmup + max((m.repeats for m in measurements), default=0)):
+            if r >= warmup:
+                probe.sample()
             for m in measurements:
                 if m.failure is not None or r >= warmup + m.repeats:
                     continue
@@ -343,10 +354,12 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
                         m.failure = f"{m.failure_prefix}: {type(error).__name__}: {error}"
                         break
     bar.close()
+    rates = probe.rates()
     for m in measurements:
         compile_seconds = m.prepared.compile_seconds()
         for row in m.rows:
-            row["compile_s"] = compile_seconds
+            row.update(compile_s=compile_seconds, matmul_run_gflops_f64=rates.float64,
+                       matmul_run_gflops_f32=rates.float32)
 
 
 def run_perf(settings: PerfSettings, echo: Callable[[str], None] | None = print

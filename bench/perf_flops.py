@@ -40,7 +40,12 @@ rho values) this is about 1.29 MFLOP per sample, 89 % of it in the factorisation
 **Matmul rate** (:func:`matmul_rate`): the best of ``repeats`` timed ``numpy.matmul`` calls
 of two ``size x size`` matrices (``2 size^3`` flops; 256 fits in a core's L2 cache),
 BLAS pinned to one thread as the timed control steps are; :func:`machine_rates` measures
-float64 and float32.
+float64 and float32 at the start of a run: the machine's best. :class:`MatmulProbe` samples
+the same product through the run, once per round of timed steps (the median of
+:data:`MATMUL_PROBE_REPEATS` products after an untimed one, so the operands are in cache as
+a warm step's are), and gives the median over the rounds: the rate the machine delivered
+while the steps were timed, the statistic a median step time compares with (measured on the
+2-core EPYC VM: 40-43 GFLOP/s through a run against a best of 49-52 at its start and end).
 """
 
 from __future__ import annotations
@@ -58,6 +63,8 @@ MATMUL_SIZE = 256
 """Side of the matrices of :func:`matmul_rate`."""
 MATMUL_REPEATS = 15
 """Timed products of :func:`matmul_rate` (the best counts)."""
+MATMUL_PROBE_REPEATS = 3
+"""Timed products of one :meth:`MatmulProbe.sample` (their median counts)."""
 
 
 @dataclass(frozen=True)
@@ -158,7 +165,8 @@ def admm_flops(nx: int, nlam: int, nu: int, horizon: int, iterations: int, sampl
 # --- the machine's rate -----------------------------------------------------------------------
 @dataclass(frozen=True)
 class MachineRates:
-    """Dense matmul rates (GFLOP/s, one BLAS thread) measured at the start of a perf run."""
+    """Dense matmul rates (GFLOP/s, one BLAS thread): the best at the start of a perf run
+    (:func:`machine_rates`) or the median through it (:meth:`MatmulProbe.rates`)."""
 
     float64: float
     float32: float
@@ -176,21 +184,71 @@ def matmul_rate(dtype: type[np.floating] = np.float64, size: int = MATMUL_SIZE,
 
     if size < 1 or repeats < 1:
         raise InputError(f"size and repeats must be >= 1, got {size}, {repeats}")
+    operands = _operands(dtype, size)
+    with single_thread_blas():
+        return max(_product_rates(operands, repeats))
+
+
+def _operands(dtype: type[np.floating], size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two random ``size x size`` matrices in ``dtype`` and the product's output."""
     rng = np.random.default_rng(0)
     a = rng.standard_normal((size, size)).astype(dtype)
     b = rng.standard_normal((size, size)).astype(dtype)
-    out = np.empty((size, size), dtype=dtype)
-    best = math.inf
-    with single_thread_blas():
+    return a, b, np.empty((size, size), dtype=dtype)
+
+
+def _product_rates(operands: tuple[np.ndarray, np.ndarray, np.ndarray], repeats: int
+                   ) -> list[float]:
+    """GFLOP/s of each of ``repeats`` timed products ``a b`` after one untimed product (BLAS
+    threads as the caller set them)."""
+    a, b, out = operands
+    flops = 2.0 * a.shape[0] * a.shape[1] * b.shape[1]
+    np.matmul(a, b, out=out)
+    rates = []
+    for _ in range(repeats):
+        start = time.perf_counter()
         np.matmul(a, b, out=out)
-        for _ in range(repeats):
-            start = time.perf_counter()
-            np.matmul(a, b, out=out)
-            best = min(best, time.perf_counter() - start)
-    return 2.0 * size ** 3 / max(best, 1e-12) / 1e9
+        rates.append(flops / max(time.perf_counter() - start, 1e-12) / 1e9)
+    return rates
 
 
 def machine_rates(size: int = MATMUL_SIZE, repeats: int = MATMUL_REPEATS) -> MachineRates:
     """:func:`matmul_rate` in float64 and float32."""
     return MachineRates(float64=matmul_rate(np.float64, size, repeats),
                         float32=matmul_rate(np.float32, size, repeats))
+
+
+class MatmulProbe:
+    """The dense matmul rate sampled through a run (module docstring): :meth:`sample` once
+    per round of timed steps, :meth:`rates` the median over the rounds, float64 and float32.
+
+    Parameters
+    ----------
+    size
+        Side of the matrices (:data:`MATMUL_SIZE`).
+    repeats
+        Timed products per sample (:data:`MATMUL_PROBE_REPEATS`), their median kept.
+    """
+
+    def __init__(self, size: int = MATMUL_SIZE, repeats: int = MATMUL_PROBE_REPEATS) -> None:
+        if size < 1 or repeats < 1:
+            raise InputError(f"size and repeats must be >= 1, got {size}, {repeats}")
+        self.repeats = repeats
+        self._operands = {precision: _operands(dtype, size) for precision, dtype in (
+            (Precision.FLOAT64, np.float64), (Precision.FLOAT32, np.float32))}
+        self.samples: dict[str, list[float]] = {precision: [] for precision in self._operands}
+        """Per precision, each sample's median GFLOP/s."""
+
+    def sample(self) -> None:
+        """One sample per precision (BLAS threads as the caller set them: one, in a run)."""
+        for precision, operands in self._operands.items():
+            self.samples[precision].append(
+                float(np.median(_product_rates(operands, self.repeats))))
+
+    def rates(self) -> MachineRates:
+        """The median of the samples per precision (NaN before the first sample)."""
+        def median(values: list[float]) -> float:
+            return float(np.median(values)) if values else math.nan
+
+        return MachineRates(float64=median(self.samples[Precision.FLOAT64]),
+                            float32=median(self.samples[Precision.FLOAT32]))

@@ -7,8 +7,8 @@
 Parquet helpers are those of :mod:`bench.store`; the perf table's own layout is versioned
 beside them (:data:`PERF_SCHEMA_VERSION`: layout 2 added the weighting, ADMM-alone, flop-model,
 matmul-rate and compile-time columns, layout 3 the executed flops, layout 4 the cache state
-of each step), and files of layouts 1 to 3 are still read, their missing columns NaN
-(:func:`upgrade_perf_frame`).
+of each step, layout 5 the matmul rate through the run), and files of layouts 1 to 4 are still
+read, their missing columns NaN (:func:`upgrade_perf_frame`).
 """
 
 from __future__ import annotations
@@ -35,25 +35,28 @@ from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.instance import atomic_write_bytes
 
 # --- perf: control-step times -----------------------------------------------------------------
-PERF_SCHEMA_VERSION = 4
+PERF_SCHEMA_VERSION = 5
 """Version of the perf table's own layout (beside :data:`SCHEMA_VERSION`, which every table
 of :mod:`bench.store` carries): 1 without the columns of :data:`PERF_V2_COLUMNS`, 2 with
-them but ``admm_mflop_executed`` and ``cache``, 3 without ``cache``, 4 with all of them.
-Stored in the ``perf_schema_version`` column and the Parquet metadata key
-:data:`PERF_METADATA_KEY`; a file of layout 1 (neither) to 3 is read with the columns it
-lacks NaN (``False`` for ``weighted``, ``cache`` by :func:`old_cache_states`)."""
+them but ``admm_mflop_executed``, ``cache`` and ``matmul_run_gflops_*``, 3 without the last
+two, 4 without ``matmul_run_gflops_*``, 5 with all of them. Stored in the
+``perf_schema_version`` column and the Parquet metadata key :data:`PERF_METADATA_KEY`; a file
+of layout 1 (neither) to 4 is read with the columns it lacks NaN (``False`` for ``weighted``,
+``cache`` by :func:`old_cache_states`)."""
 
 
 class CacheState(StrEnum):
     """What ran on the core just before a timed control step (``cache`` column).
 
     ``c3bench perf`` times each configuration in blocks of consecutive steps per round
-    (:mod:`bench.perf`): the first step of a block follows another configuration's step, whose
-    code and data have pushed this one's out of the core's caches (``COLD``; measured on the
+    (:mod:`bench.perf`): the first step of a block follows another configuration's step or
+    the round's matmul probe, whose code and data have pushed this one's out of the core's
+    caches (``COLD``; measured on the
     2-core EPYC VM: flushing 64 MB before the compiled one-sample step costs it 0.16 ms of
     ADMM and 0.4 ms of LCS build), the others follow this configuration's own steps
     (``WARM``, as a controller in its loop, where only the plant runs between its steps).
-    With one configuration per sample count every step is ``WARM``.
+    Before layout 5, with one configuration per sample count every step was ``WARM`` (no
+    probe ran between its blocks).
     """
 
     COLD = "cold"
@@ -107,13 +110,19 @@ PERF_SCHEMA: tuple[Column, ...] = (
            "symmetric products, structural zeros skipped), the flop model's for the numpy and "
            "JAX paths; NaN for the reference controller and in layouts 1-2."),
     # layout 4
-    Column("cache", "str", "cold: the step follows another configuration's step; warm: it "
-           "follows a step of its own configuration (:class:`CacheState`; layouts 1-3: cold "
-           "when the run measured several configurations at that sample count)."),
+    Column("cache", "str", "cold: the step follows another configuration's step or the "
+           "round's matmul probe; warm: it follows a step of its own configuration "
+           "(:class:`CacheState`; layouts 1-3: cold when the run measured several "
+           "configurations at that sample count)."),
+    # layout 5
+    Column("matmul_run_gflops_f64", "float64", "The dense float64 matmul rate through the "
+           "run: the median over the timed rounds of this sample count of each round's "
+           "median of 3 products (bench/perf_flops.py, MatmulProbe); NaN in layouts 1-4."),
+    Column("matmul_run_gflops_f32", "float64", "The same in float32."),
 )
 PERF_COLUMNS: tuple[str, ...] = tuple(column.name for column in PERF_SCHEMA)
 PERF_V2_COLUMNS: tuple[str, ...] = PERF_COLUMNS[PERF_COLUMNS.index("perf_schema_version"):]
-"""Columns added by perf layouts 2 to 4 (filled with NaN, ``weighted`` ``False``, ``cache`` by
+"""Columns added by perf layouts 2 to 5 (filled with NaN, ``weighted`` ``False``, ``cache`` by
 :func:`old_cache_states`, when an older file lacks them)."""
 PERF_READABLE: tuple[int, ...] = (1, SCHEMA_VERSION)
 """Values of :data:`SCHEMA_VERSION` whose perf tables this c3bench reads (the perf table's own
@@ -138,7 +147,7 @@ def old_cache_states(frame: pd.DataFrame) -> pd.Series:
 
 
 def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
-    """The rows of a stored perf table in the current layout: a table of layouts 1 to 3 gets
+    """The rows of a stored perf table in the current layout: a table of layouts 1 to 4 gets
     the columns of :data:`PERF_V2_COLUMNS` it lacks (NaN, ``weighted`` ``False``, ``cache`` by
     :func:`old_cache_states`; a file without a layout is version 1); a newer
     layout than :data:`PERF_SCHEMA_VERSION` raises :class:`SchemaVersionError`."""

@@ -14,7 +14,10 @@ not measured in that run: machines differ by 2-4x, so only ratios within one run
 flops the backend executed: the compiled kernel's own count, the flop model of
 :mod:`bench.perf_flops` for the numpy and JAX paths; NaN in perf layouts before 3, which
 stored the model's flops only), ``rate_share = gflops / matmul rate`` of the row's precision
-measured at the start of the same run.
+measured at the start of the same run (its best of 15: the machine's peak) and
+``rate_share_run = gflops / matmul_run_gflops``, the rate measured through the same run's
+rounds (median over the rounds, :class:`bench.perf_flops.MatmulProbe`): median against
+median, so a slow phase of the machine divides out (NaN in perf layouts before 5).
 """
 
 from __future__ import annotations
@@ -59,11 +62,15 @@ def _record(group: pd.DataFrame) -> dict[str, Any]:
     record["matmul_gflops"] = _median(
         group["matmul_gflops_f32" if str(group["precision"].iloc[0]) == "float32"
               else "matmul_gflops_f64"])
+    record["matmul_run_gflops"] = _median(
+        group["matmul_run_gflops_f32" if str(group["precision"].iloc[0]) == "float32"
+              else "matmul_run_gflops_f64"])
     record["compile_s"] = _median(group["compile_s"])
     if timed.empty:
         record.update({name: math.nan for name in (
             "median_ms", "p95_ms", *MEDIAN_COLUMNS, "overhead_fraction", "admm_mflop",
-            "admm_mflop_executed", "gflops", "rate_share")}, failed=0, weighted=False)
+            "admm_mflop_executed", "gflops", "rate_share", "rate_share_run")}, failed=0,
+            weighted=False)
         return record
     median = _median(timed["total_ms"])
     record.update(median_ms=median, p95_ms=_p95(timed["total_ms"].astype(float).tolist()))
@@ -76,8 +83,9 @@ def _record(group: pd.DataFrame) -> dict[str, Any]:
     record["admm_mflop"] = _median(timed["admm_mflop"])
     record["admm_mflop_executed"] = executed
     record["gflops"] = executed / admm if admm > 0 else math.nan
-    rate = record["matmul_gflops"]
-    record["rate_share"] = record["gflops"] / rate if rate > 0 else math.nan
+    for share, rate in (("rate_share", record["matmul_gflops"]),
+                        ("rate_share_run", record["matmul_run_gflops"])):
+        record[share] = record["gflops"] / rate if rate > 0 else math.nan
     return record
 
 
@@ -133,11 +141,15 @@ def format_ratio(value: float) -> str:
     return f"{value:.3g}" if math.isfinite(value) else "-"
 
 
-def format_rate(gflops: float, share: float) -> str:
-    """``1.23 GFLOP/s (4.5 % of matmul)`` or ``-``."""
+def format_rate(gflops: float, share: float, share_run: float = math.nan) -> str:
+    """``1.23 GFLOP/s (5.2 % of matmul through the run, 4.5 % of its best)``, ``1.23 GFLOP/s
+    (4.5 % of matmul)`` without the rate through the run, or ``-``."""
     if not math.isfinite(gflops):
         return "-"
     text = f"{gflops:.3g} GFLOP/s"
+    if math.isfinite(share_run):
+        best = f", {100 * share:.1f} % of its best" if math.isfinite(share) else ""
+        return text + f" ({100 * share_run:.1f} % of matmul through the run{best})"
     return text + (f" ({100 * share:.1f} % of matmul)" if math.isfinite(share) else "")
 
 
@@ -155,7 +167,7 @@ def format_summary_line(s: pd.Series) -> str:
             f"({'qp+proj' if jax else 'qp'} {format_ms(s['qp_ms'])}, proj "
             f"{'(compiled)' if jax else format_ms(s['proj_ms'])})  overhead "
             f"{format_ms(s['overhead_ms'])}  cpu {format_ms(s['cpu_ms'])}  "
-            f"{format_rate(s['gflops'], s['rate_share'])}  "
+            f"{format_rate(s['gflops'], s['rate_share'], s['rate_share_run'])}  "
             f"t/riccati {format_ratio(s['ratio_riccati'])} (admm "
             f"{format_ratio(s['admm_ratio_riccati'])})  t/osqp {format_ratio(s['ratio_osqp'])} "
             f"(admm {format_ratio(s['admm_ratio_osqp'])})  load {s['load_avg']:.2f}  "

@@ -9,6 +9,7 @@ import pytest
 
 from c3bench.bench.perf_flops import (
     MachineRates,
+    MatmulProbe,
     admm_flops,
     factorisation_flops,
     matmul_rate,
@@ -96,3 +97,16 @@ def test_matmul_rate_is_a_finite_positive_rate_per_precision() -> None:
     assert rates.of("float32") == 2.0 and rates.of("float64") == 1.0
     with pytest.raises(InputError):
         matmul_rate(np.float64, size=0)
+
+
+def test_matmul_probe_keeps_the_median_of_its_samples() -> None:
+    probe = MatmulProbe(size=32, repeats=3)
+    assert all(math.isnan(rate) for rate in (probe.rates().float64, probe.rates().float32))
+    for _ in range(3):
+        probe.sample()
+    for precision in ("float64", "float32"):
+        samples = probe.samples[precision]
+        assert len(samples) == 3 and all(math.isfinite(v) and v > 0 for v in samples)
+        assert probe.rates().of(precision) == sorted(samples)[1]
+    with pytest.raises(InputError):
+        MatmulProbe(repeats=0)

@@ -27,9 +27,10 @@ def _rows(run: str, backend: str, samples: int, totals: list[float], admm: list[
                    skipped=False, note="", weighted=samples > 1, weighting_ms=1.0,
                    total_no_weighting_ms=total - 1.0, admm_mflop=mflop,
                    admm_mflop_executed=mflop if executed is None else executed,
-                   matmul_gflops_f64=10.0, matmul_gflops_f32=20.0, load_avg=0.5,
+                   matmul_gflops_f64=10.0, matmul_gflops_f32=20.0,
+                   matmul_run_gflops_f64=8.0, matmul_run_gflops_f32=16.0, load_avg=0.5,
                    iterations=10, horizon=7, cache_hits=-1, cache_misses=-1,
-                   blas_threads=1, affinity="0", perf_schema_version=4, cache=cache)
+                   blas_threads=1, affinity="0", perf_schema_version=5, cache=cache)
         rows.append(row)
     return rows
 
@@ -61,10 +62,13 @@ def test_ratios_are_within_one_run_and_the_same_samples() -> None:
     assert f32["admm_ratio_riccati"] == pytest.approx(2.0 / 5.0)
     assert summary.loc[("r2", "c3plus-riccati", "float64", 16)]["ratio_riccati"] == 1.0
     assert math.isnan(summary.loc[("r2", "c3plus-riccati", "float64", 16)]["ratio_osqp"])
-    # GFLOP/s = MFLOP / ms, share of the row precision's matmul rate
+    # GFLOP/s = MFLOP / ms, share of the row precision's matmul rate: the best at the start
+    # and the median through the run
     assert riccati["gflops"] == pytest.approx(20.0 / 5.0)
     assert riccati["rate_share"] == pytest.approx(0.4)
+    assert riccati["rate_share_run"] == pytest.approx(4.0 / 8.0)
     assert f32["rate_share"] == pytest.approx(10.0 / 20.0)
+    assert f32["rate_share_run"] == pytest.approx(10.0 / 16.0)
     assert math.isnan(summary.loc[("r1", "c3-osqp", "float64", 16)]["gflops"])
     compiled = summary.loc[("r1", "c3plus-compiled", "float64", 16)]
     assert compiled["gflops"] == pytest.approx(8.0) and compiled["admm_mflop"] == 20.0
@@ -117,8 +121,13 @@ def test_ratios_are_nan_without_the_reference() -> None:
 def test_printed_lines_carry_ratios_rate_and_load() -> None:
     text = format_line(_frame()[lambda f: f["run_id"] == "r1"])
     line = next(t for t in text.splitlines() if "float32" in t)
-    assert "t/riccati 0.5" in line and "GFLOP/s (50.0 % of matmul)" in line
+    assert "t/riccati 0.5" in line
+    assert "GFLOP/s (62.5 % of matmul through the run, 50.0 % of its best)" in line
     assert "load 0.50" in line and "weighting 1.00" in line
+    # a layout-4 row has the best at the start only
+    old = _frame()[lambda f: f["run_id"] == "r1"].assign(matmul_run_gflops_f32=math.nan)
+    line = next(t for t in format_line(old).splitlines() if "float32" in t)
+    assert "GFLOP/s (50.0 % of matmul)" in line
 
 
 def test_layout_one_files_are_read_with_nan_columns(tmp_path: Path) -> None:
