@@ -69,8 +69,9 @@ __all__ = ["CODEGEN", "ENV_SWITCH", "Emitter", "call_step", "call_through_addres
 
 ENV_SWITCH = "C3BENCH_CODEGEN"
 """Environment variable: ``0``, ``off`` or ``false`` switches the generated code off."""
-FORMAT = 1
-"""Version of the generator, part of the disk cache's key (raise it when the IR changes)."""
+FORMAT = 2
+"""Version of the generator, part of the disk cache's key (raise it when the IR or the calling
+convention changes; 2: the passes take ``delta`` and ``w`` instead of their difference)."""
 FUNCTION = "c3bench_riccati_step"
 
 

@@ -145,8 +145,9 @@ def iterate_in_lanes(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: 
     if generated[0] != 0 and generated[2] == Y.shape[3] and generated[3] == n and \
             n % generated[1] == 0:
         o = index * n
-        call_passes(generated[0], _difference(delta, w), Mt, consts, vectors, Y[:, :, :, o:],
-                    L[:, :, :, o:], Sd[:, :, o:], D[:, o:], ABd[:, :, o:], zt, n)
+        call_passes(generated[0], np.ascontiguousarray(delta), np.ascontiguousarray(w), Mt,
+                    consts, vectors, Y[:, :, :, o:], L[:, :, :, o:], Sd[:, :, o:], D[:, o:],
+                    ABd[:, :, o:], zt, n)
     elif n >= LANE_SOLVE:
         _passes_in_lanes(vectors, _difference(delta, w), Mt, consts, Y, L, Sd, D, ABd, index,
                          column_start, column_rows, row_start, row_columns, zero, zt)

@@ -17,7 +17,9 @@ in the same order (both of them share one order: the sums of the one-sample loop
 lane loops run over the same terms in the same sequence), without fast-math flags, so its
 ``z`` is theirs bit for bit. The projection and the dual update that follow stay numba code.
 
-Inputs (lanes last, C order): ``dw = delta - w`` (T, ns, n), ``[M c]`` (nlam, ny + 1, n),
+Inputs (lanes last, C order): ``delta`` and ``w`` (T, ns, n; ``dw = delta - w`` is formed
+as each entry is loaded, rounded once as the lane loops' difference is), ``[M c]`` (nlam, ny
++ 1, n),
 ``consts`` (``-2 G_y``, ``2 rho_eta``, ...), ``vectors`` (``x0``, ``g_x``, ``g_T``), the
 factors of one slot (``Y``, ``L``, ``Sd``, ``D``, ``ABd`` from their first lane, lane stride
 ``factor_lanes``); output ``zt`` (T + 1, ns, n): ``z`` of every step, row ``T`` the
@@ -59,7 +61,7 @@ class _Layout:
         self.ny = nx + nv
         self.ns = self.ny + nlam
 
-    def dw(self, k: int, a: int) -> int:
+    def iterate(self, k: int, a: int) -> int:
         return (k * self.ns + a) * self.n
 
     def M(self, b: int, a: int) -> int:
@@ -84,10 +86,15 @@ class _Layout:
         return (a * (self.ny + 1) + b) * self.W
 
 
+def _difference(e: Emitter, s: _Layout, k: int, a: int) -> str:
+    """``dw = delta - w`` of step ``k``, entry ``a`` (each is used once)."""
+    return e.op("fsub", e.load("%delta", s.iterate(k, a)), e.load("%w", s.iterate(k, a)))
+
+
 def _gradient(e: Emitter, s: _Layout, k: int) -> list[str]:
     """``g_y`` of step ``k``, scaled by ``D`` (``solve_project``'s gradient)."""
     ny, nx = s.ny, s.nx
-    eta = [e.op("fsub", e.load("%M", s.M(b, ny)), e.load("%dw", s.dw(k, ny + b)))
+    eta = [e.op("fsub", e.load("%M", s.M(b, ny)), _difference(e, s, k, ny + b))
            for b in range(s.nlam)]
     two_rho_eta = e.broadcast("%c", ny)
     gy = []
@@ -95,7 +102,7 @@ def _gradient(e: Emitter, s: _Layout, k: int) -> list[str]:
         acc = e.zero
         for b in range(s.nlam):
             acc = e.multiply_add(acc, e.load("%M", s.M(b, a)), eta[b])
-        g = e.op("fmul", e.load("%dw", s.dw(k, a)), e.broadcast("%c", a))
+        g = e.op("fmul", _difference(e, s, k, a), e.broadcast("%c", a))
         if a < nx:
             g = e.op("fadd", g, e.broadcast("%vec", nx + a))
         g = e.op("fadd", g, e.op("fmul", acc, two_rho_eta))
@@ -184,17 +191,17 @@ def _lists(start: np.ndarray, entries: np.ndarray) -> list[list[int]]:
 def passes_ir(nx: int, nv: int, nlam: int, T: int, column_start: np.ndarray,
               column_rows: np.ndarray, row_start: np.ndarray, row_columns: np.ndarray,
               samples: int, factor_lanes: int, dtype: Any, width: int) -> str:
-    """LLVM IR of ``void c3bench_linear_passes(dw, M, consts, vectors, Y, L, Sd, D, ABd, zt,
-    count)`` for samples ``0 .. count`` (a multiple of ``width``; module docstring)."""
+    """LLVM IR of ``void c3bench_linear_passes(delta, w, M, consts, vectors, Y, L, Sd, D, ABd,
+    zt, count)`` for samples ``0 .. count`` (a multiple of ``width``; module docstring)."""
     scalar = "double" if np.dtype(dtype) == np.float64 else "float"
     e = Emitter(scalar, width)
     s = _Layout(nx, nv, nlam, T, samples, factor_lanes)
     gy = [_gradient(e, s, k) for k in range(T)]
     tt = _backward(e, s, gy, _lists(column_start, column_rows))
     _forward(e, s, tt, _lists(row_start, row_columns))
-    lane_arrays = ("dw", "M", "zt", "Y", "L", "Sd", "D", "AB")
+    lane_arrays = ("delta", "w", "M", "zt", "Y", "L", "Sd", "D", "AB")
     parameters = ", ".join(f"ptr noalias %{name}0" for name in
-                           ("dw", "M", "c", "vec", "Y", "L", "Sd", "D", "AB", "zt"))
+                           ("delta", "w", "M", "c", "vec", "Y", "L", "Sd", "D", "AB", "zt"))
     chunk = "\n".join(f"  %{name} = getelementptr inbounds {scalar}, ptr %{name}0, i64 %lane"
                       for name in lane_arrays)
     body = "\n".join(e.lines)
@@ -231,13 +238,14 @@ def passes_address(nx: int, nv: int, nlam: int, T: int, pattern: Any, samples: i
 
 
 @intrinsic
-def _call_passes(typingctx: Any, address: Any, dw: Any, M: Any, consts: Any, vectors: Any,
-                 Y: Any, L: Any, Sd: Any, D: Any, ABd: Any, zt: Any, count: Any) -> Any:
+def _call_passes(typingctx: Any, address: Any, delta: Any, w: Any, M: Any, consts: Any,
+                 vectors: Any, Y: Any, L: Any, Sd: Any, D: Any, ABd: Any, zt: Any, count: Any
+                 ) -> Any:
     """Call the generated passes at ``address`` on the arrays' data (numba intrinsic)."""
-    signature = types.void(address, dw, M, consts, vectors, Y, L, Sd, D, ABd, zt, count)
+    signature = types.void(address, delta, w, M, consts, vectors, Y, L, Sd, D, ABd, zt, count)
     return signature, call_through_address
 
 
 call_passes = cast(Callable[..., None], _call_passes)
-"""``call_passes(address, dw, M, consts, vectors, Y, L, Sd, D, ABd, zt, count)`` in numba
+"""``call_passes(address, delta, w, M, consts, vectors, Y, L, Sd, D, ABd, zt, count)`` in numba
 code (the intrinsic above, typed for its callers)."""
