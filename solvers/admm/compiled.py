@@ -273,7 +273,6 @@ class CompiledC3PlusKernel:
         shape = self._step_shape  # new sets every step: the PlanRun's arrays are views
         iterates = np.empty((2, 3, *shape), self.dtype)
         terminals = np.empty((2, shape[0], self.nx), self.dtype)
-        iterates[0, 0], iterates[0, 1] = delta, w
         f, a = self._planned, self._arrays
         self._entries = {}  # the group buffer is overwritten
         completed, current, code = self._timed(
@@ -281,7 +280,7 @@ class CompiledC3PlusKernel:
             self._PT, self._ridge, bool(self.riccati.jacobi), self._zero, self._one,
             pattern.column_start, pattern.column_rows, pattern.row_start, pattern.row_columns,
             f.Y, f.L, f.Sd, f.D, f.ABd, f.failed, self._vectors, a["Mc"], a["Mt"], consts,
-            self._p, self._shared, self._box, ratios, iterates, terminals,
+            self._p, self._shared, self._box, ratios, delta, w, iterates, terminals,
             self._steps(f.shape[0], len(plan) % f.shape[0] or f.shape[0]), self._passes(f))
         group, n = f.shape[0], len(self._p)
         attempted = min(completed + (code != 0), len(plan))  # the failed one included

@@ -57,8 +57,9 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
              Y: np.ndarray, L: np.ndarray, Sd: np.ndarray, D: np.ndarray, ABd: np.ndarray,
              failed: np.ndarray, vectors: np.ndarray, Mc: np.ndarray, Mt: np.ndarray,
              consts: np.ndarray, p: np.ndarray, shared: bool, box: np.ndarray,
-             ratios: np.ndarray, iterates: np.ndarray, terminals: np.ndarray,
-             steps: np.ndarray, generated: np.ndarray) -> tuple[int, int, int]:
+             ratios: np.ndarray, delta: np.ndarray, w: np.ndarray, iterates: np.ndarray,
+             terminals: np.ndarray, steps: np.ndarray, generated: np.ndarray
+             ) -> tuple[int, int, int]:
     """Every iteration of the plan (module docstring).
 
     ``bases`` (N, ny, ny), ``two_rho_eta`` (N,) and ``consts`` (N, ny + 3) are the plan's
@@ -66,8 +67,10 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     :func:`~c3bench.solvers.admm.compiled_passes.iterate_in_lanes`; ``Y`` ... ``failed`` the
     group buffer (:class:`~c3bench.solvers.admm.compiled_factors.CompiledFactors`, ``m n``
     lanes: ``m`` is the group size); ``ratios`` (N - 1, ns);
-    ``iterates`` (2, 3, n, T, ns): two sets of ``(delta, w, z_steps)``, set 0 holding the
-    initial ``delta`` and ``w``; ``terminals`` (2, n, nx) the sets' ``z_terminal``; ``steps``
+    ``delta`` and ``w`` (n, T, ns) the initial iterates (read only); ``iterates`` (2, 3, n,
+    T, ns) receives the set of ``(delta, w, z_steps)`` the return value names (set 0 holds the
+    initial ``delta`` and ``w`` when no iteration completed), ``terminals`` (2, n, nx) its
+    ``z_terminal``; ``steps``
     the generated backward steps of :func:`~c3bench.solvers.admm.compiled_kernels.
     factorize_batch`, ``generated`` the generated passes of :func:`~c3bench.solvers.admm.
     compiled_passes.iterate_in_lanes`.
@@ -81,8 +84,8 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     group = failed.shape[0] // n
     lanes = np.empty((2, 2, T, ns, n), iterates.dtype)  # (delta, w) sets, samples last
     zts = np.empty((2, T + 1, ns, n), iterates.dtype)  # the sets' z (row T: terminal x)
-    _to_lanes(iterates[0, 0], lanes[0, 0])
-    _to_lanes(iterates[0, 1], lanes[0, 1])
+    _to_lanes(delta, lanes[0, 0])
+    _to_lanes(w, lanes[0, 1])
     current = 0
     for i in range(N):
         slot = i % group
@@ -104,12 +107,12 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
             return i, current, NON_FINITE
         current = target
         if i + 1 < N:
-            w = lanes[current, 1]
+            dual = lanes[current, 1]
             for k in range(T):
                 for a in range(ns):
                     ratio = ratios[i, a]
                     for j in range(n):
-                        w[k, a, j] = _scale_dual(w[k, a, j], ratio)
+                        dual[k, a, j] = _scale_dual(dual[k, a, j], ratio)
     _store(lanes[current], zts[current], iterates[current], terminals[current])
     return N, current, 0
 

@@ -81,11 +81,12 @@ def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -
     array = np.asarray(weights, dtype=float)
     if array.shape != (samples,):
         raise ValueError(f"weights must have shape ({samples},), got {array.shape}")
-    total = array.sum()
-    if not (np.isfinite(array).all() and array.min() >= 0 and total > 0):
+    total, lowest, largest = array.sum(), array.min(), array.max()
+    if not (lowest >= 0 and largest < math.inf and total > 0):  # a NaN fails lowest >= 0
         raise ValueError("weights must be finite, >= 0 and not all zero")
     array = array / total
-    array = np.maximum(array, floor * array.max())
+    # max(a / total) = max(a) / total exactly: rounding a division is monotone
+    array = np.maximum(array, floor * (largest / total))
     normalised: np.ndarray = array / array.sum()
     return normalised
 
