@@ -109,33 +109,40 @@ def scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     are read by runs of lanes whose samples are contiguous (:func:`lane_runs`) when the runs
     average four lanes or more (a group of 32 lanes for 16 samples: 15 -> 8 us), else gathered
     lane by lane (one sample's 10 rho values: runs of one lane, 8 against 20 us); the same
-    products either way."""
+    products either way. The scaling comes first, from ``H_y``'s diagonal, so that ``H_y`` is
+    written once, already scaled (the same operations in the same order as forming it and
+    scaling it in a second pass: 9.1 -> 8.5 us for 32 lanes at 16 samples)."""
     nx, nv = A.shape[0], Bv.shape[1]
     ny = nx + nv
     runs = np.empty((nl, 4), np.int64)
     count = lane_runs(li, lj, nl, runs)
     if 4 * count > nl:
         count = 0  # gathered below
-    for a in range(ny):  # only the entries the backward steps read (used_columns)
+    for a in range(ny):  # the scaling first, from the diagonal of H_y alone
+        if count == 0:
+            for l in range(nl):
+                scratch[l] = MtM[a, a, lj[l]] * two_rho_eta[li[l]] + base[li[l], a, a]
+        for r in range(count):
+            factor, offset = two_rho_eta[runs[r, 1]], base[runs[r, 1], a, a]
+            l0, j0 = np.uint64(runs[r, 0]), np.uint64(runs[r, 2])  # unsigned: no
+            for q in range(np.uint64(runs[r, 3])):  # negative-index wraparound
+                scratch[l0 + q] = MtM[a, a, j0 + q] * factor + offset
+        for l in range(nl):
+            h = scratch[l]
+            Db[a, l] = one / np.sqrt(h) if (jacobi and h > zero) else one
+    for a in range(ny):  # then H_y scaled in one pass: the entries of used_columns
         first, stop = used_columns(a, nx, ny)
         for b in range(first, stop):
             if count == 0:
                 for l in range(nl):
-                    Hy[a, b, l] = MtM[a, b, lj[l]] * two_rho_eta[li[l]] + base[li[l], a, b]
+                    Hy[a, b, l] = (MtM[a, b, lj[l]] * two_rho_eta[li[l]]
+                                   + base[li[l], a, b]) * Db[a, l] * Db[b, l]
             for r in range(count):
                 factor, offset = two_rho_eta[runs[r, 1]], base[runs[r, 1], a, b]
-                l0, j0 = np.uint64(runs[r, 0]), np.uint64(runs[r, 2])  # unsigned: no
-                for q in range(np.uint64(runs[r, 3])):  # negative-index wraparound
-                    Hy[a, b, l0 + q] = MtM[a, b, j0 + q] * factor + offset
-    for a in range(ny):
-        for l in range(nl):
-            h = Hy[a, a, l]
-            Db[a, l] = one / np.sqrt(h) if (jacobi and h > zero) else one
-    for a in range(ny):
-        first, stop = used_columns(a, nx, ny)
-        for b in range(first, stop):
-            for l in range(nl):
-                Hy[a, b, l] = Hy[a, b, l] * Db[a, l] * Db[b, l]
+                l0, j0 = np.uint64(runs[r, 0]), np.uint64(runs[r, 2])
+                for q in range(np.uint64(runs[r, 3])):
+                    Hy[a, b, l0 + q] = (MtM[a, b, j0 + q] * factor + offset) \
+                        * Db[a, l0 + q] * Db[b, l0 + q]
     for a in range(nx, ny):
         for l in range(nl):
             Hy[a, a, l] += ridge
