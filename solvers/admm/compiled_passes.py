@@ -1,6 +1,8 @@
 """Numba kernel of one compiled C3+ ADMM iteration: linear passes, projection, dual update.
 
-:func:`solve_project` takes the factors of :func:`c3bench.solvers.admm.compiled_kernels.
+:func:`iterate_in_lanes` (the one iteration; :func:`solve_project` calls it on iterates with
+the samples first, :func:`c3bench.solvers.admm.compiled_plan.run_plan` keeps them samples last
+throughout) takes the factors of :func:`c3bench.solvers.admm.compiled_kernels.
 factorize_batch` (samples on their last axis) and does, for every sample, the gradient, the
 backward and forward passes of the Riccati recursion (arithmetic of :mod:`solvers.fast`, the
 rearrangements of :mod:`.compiled_kernels`: ``K`` applied through ``Y`` and ``L``,
@@ -32,7 +34,7 @@ from c3bench.solvers.admm.compiled_passes_codegen import call_passes
 from c3bench.solvers.admm.loop import dual_update
 from c3bench.solvers.admm.projection import make_c3plus_pairs
 
-__all__ = ["LANE_SOLVE", "solve_flops", "solve_project"]
+__all__ = ["LANE_SOLVE", "iterate_in_lanes", "solve_flops", "solve_project"]
 
 @numba.njit(fastmath=False)
 def _maximum(a: Any, b: Any) -> Any:
