@@ -143,6 +143,10 @@ DEFAULT_SAMPLES: tuple[int, ...] = (1, 16, 64, 256, 1024)
 """Numbers of model samples measured unless chosen otherwise."""
 PERF_FIGURE = "perf_time_vs_samples.png"
 """File name of the figure under ``<results>/perf/figures/``."""
+BLOCK_STATES: tuple[CacheState, ...] = (CacheState.COLD,) + (CacheState.WARM,) * (
+    STEPS_PER_ROUND - 1)
+"""The cache state of each step of a block: cold (it follows another configuration's block or
+the round's matmul probe), then warm."""
 XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 
 
@@ -310,12 +314,6 @@ def _time_step(run: _Run, m: _Measurement, step: int, cache: CacheState, load: f
         admm_mflop_executed=executed, cache=str(cache)))
 
 
-def _block_states() -> tuple[CacheState, ...]:
-    """The cache state of each step of a block: cold (it follows another configuration's block
-    or the round's matmul probe), then warm."""
-    return (CacheState.COLD,) + (CacheState.WARM,) * (STEPS_PER_ROUND - 1)
-
-
 def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: bool = False
                          ) -> None:
     """Warm-up, then the timed rounds of every configuration of one sample count: in round
@@ -332,7 +330,6 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
     bar = progress_bar(progress, STEPS_PER_ROUND * sum(warmup + m.repeats
                                                        for m in measurements),
                        f"perf samples={samples}", "step")
-    states = _block_states()
     probe = MatmulProbe()
     gc.collect()
     with single_thread_blas():
@@ -343,7 +340,7 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
             for m in measurements:
                 if m.failure is not None or r >= warmup + m.repeats:
                     continue
-                for offset, cache in enumerate(states):
+                for offset, cache in enumerate(BLOCK_STATES):
                     bar.update(1)
                     try:
                         _time_step(run, m, STEPS_PER_ROUND * r + offset, cache, load, threads)

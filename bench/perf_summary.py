@@ -59,12 +59,9 @@ def _record(group: pd.DataFrame) -> dict[str, Any]:
     record: dict[str, Any] = {"repeats": len(timed), "note": _notes(timed if len(timed)
                                                                      else group)}
     record["load_avg"] = _median(group["load_avg"])
-    record["matmul_gflops"] = _median(
-        group["matmul_gflops_f32" if str(group["precision"].iloc[0]) == "float32"
-              else "matmul_gflops_f64"])
-    record["matmul_run_gflops"] = _median(
-        group["matmul_run_gflops_f32" if str(group["precision"].iloc[0]) == "float32"
-              else "matmul_run_gflops_f64"])
+    suffix = "f32" if str(group["precision"].iloc[0]) == "float32" else "f64"
+    for name in ("matmul_gflops", "matmul_run_gflops"):  # the row precision's rate
+        record[name] = _median(group[f"{name}_{suffix}"])
     record["compile_s"] = _median(group["compile_s"])
     if timed.empty:
         record.update({name: math.nan for name in (

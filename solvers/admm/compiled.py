@@ -270,17 +270,17 @@ class CompiledC3PlusKernel:
         if self._plan_stacked is None:  # known while the same frozen plan comes back
             self._plan_stacked = self._stack(self._plan, self._plan_keys)[1]
         bases, two_rho_eta, consts = self._plan_stacked
-        shape = self._step_shape  # new sets every step: the PlanRun's arrays are views
-        iterates = np.empty((2, 3, *shape), self.dtype)
-        terminals = np.empty((2, shape[0], self.nx), self.dtype)
+        shape = self._step_shape  # new arrays every step: the PlanRun's arrays are views
+        iterates = np.empty((3, *shape), self.dtype)
+        terminal = np.empty((shape[0], self.nx), self.dtype)
         f, a = self._planned, self._arrays
         self._entries = {}  # the group buffer is overwritten
-        completed, current, code = self._timed(
+        completed, code = self._timed(
             compiled_plan.run_plan, a["A"], a["Bv"], a["d"], a["MtM"], bases, two_rho_eta,
             self._PT, self._ridge, bool(self.riccati.jacobi), self._zero, self._one,
             pattern.column_start, pattern.column_rows, pattern.row_start, pattern.row_columns,
             f.Y, f.L, f.Sd, f.D, f.ABd, f.failed, self._vectors, a["Mc"], a["Mt"], consts,
-            self._p, self._shared, self._box, ratios, delta, w, iterates, terminals,
+            self._p, self._shared, self._box, ratios, delta, w, iterates, terminal,
             self._steps(f.shape[0], len(plan) % f.shape[0] or f.shape[0]), self._passes(f))
         group, n = f.shape[0], len(self._p)
         attempted = min(completed + (code != 0), len(plan))  # the failed one included
@@ -295,9 +295,8 @@ class CompiledC3PlusKernel:
             failure = KernelFailure("non-finite QP solution", f"rho={dict(plan[completed])}",
                                     True)
         done = completed > 0
-        return PlanRun(completed, iterates[current, 0], iterates[current, 1],
-                       iterates[current, 2] if done else None,
-                       terminals[current] if done else None, failure)
+        return PlanRun(completed, iterates[0], iterates[1], iterates[2] if done else None,
+                       terminal if done else None, failure)
 
     # -- internals -----------------------------------------------------------------------------
     def _checked(self, array: np.ndarray) -> np.ndarray:

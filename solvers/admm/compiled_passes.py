@@ -34,7 +34,8 @@ from c3bench.solvers.admm.compiled_passes_codegen import call_passes
 from c3bench.solvers.admm.loop import dual_update
 from c3bench.solvers.admm.projection import make_c3plus_pairs
 
-__all__ = ["LANE_SOLVE", "iterate_in_lanes", "solve_flops", "solve_project"]
+__all__ = ["LANE_SOLVE", "from_lanes", "iterate_in_lanes", "solve_flops", "solve_project",
+           "to_lanes", "z_from_lanes"]
 
 @numba.njit(fastmath=False)
 def _maximum(a: Any, b: Any) -> Any:
@@ -105,7 +106,7 @@ def solve_project(vectors: np.ndarray, delta: np.ndarray, w: np.ndarray, Mc: np.
                               row_start, row_columns, p, shared, box, zero, zt,
                               new_delta.transpose(1, 2, 0), new_w.transpose(1, 2, 0),
                               generated)
-    _from_lanes(zt, z_steps, z_terminal)
+    z_from_lanes(zt, z_steps, z_terminal)
     return finite
 
 
@@ -305,14 +306,32 @@ def _difference(delta: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 @_jit
-def _from_lanes(zt: np.ndarray, z_steps: np.ndarray, z_terminal: np.ndarray) -> None:
-    """``z`` of the passes' lanes, ``zt`` (T + 1, ns, n), into ``z_steps`` (n, T, ns) and
-    ``z_terminal`` (n, nx) (row ``T`` of ``zt``)."""
-    n, T, ns = z_steps.shape
+def to_lanes(samples_first: np.ndarray, samples_last: np.ndarray) -> None:
+    """Iterates ``(n, T, ns)`` into the passes' layout ``(T, ns, n)``."""
+    n, T, ns = samples_first.shape
     for j in range(n):
         for k in range(T):
             for a in range(ns):
-                z_steps[j, k, a] = zt[k, a, j]
+                samples_last[k, a, j] = samples_first[j, k, a]
+
+
+@_jit
+def from_lanes(samples_last: np.ndarray, samples_first: np.ndarray) -> None:
+    """Iterates ``(T, ns, n)`` back into ``(n, T, ns)``."""
+    n, T, ns = samples_first.shape
+    for j in range(n):
+        for k in range(T):
+            for a in range(ns):
+                samples_first[j, k, a] = samples_last[k, a, j]
+
+
+@_jit
+def z_from_lanes(zt: np.ndarray, z_steps: np.ndarray, z_terminal: np.ndarray) -> None:
+    """``z`` of the passes' lanes, ``zt`` (T + 1, ns, n), into ``z_steps`` (n, T, ns) and
+    ``z_terminal`` (n, nx) (row ``T`` of ``zt``)."""
+    T = z_steps.shape[1]
+    from_lanes(zt[:T], z_steps)
+    for j in range(z_terminal.shape[0]):
         for a in range(z_terminal.shape[1]):
             z_terminal[j, a] = zt[T, a, j]
 

@@ -18,11 +18,11 @@ Nothing here is a second copy of the algorithm: every step is the loop's or the 
 definition, called in the loop's order. What the call saves is the Python between
 iterations (about 25 us per iteration: argument checks, dispatch of a 24-argument compiled
 call, the loop's bookkeeping, the rescaling in numpy), which was half of a one-sample
-control step. The iterates alternate between two sets, so that a failed iteration leaves
-the last completed one intact, as the iteration-by-iteration loop does; between the first
-and the last iteration they are kept with the samples last, the layout of the passes
-(:func:`c3bench.solvers.admm.compiled_passes.iterate_in_lanes`), and transposed only on the
-way in and out.
+control step. Between the first and the last iteration the iterates are kept with the
+samples last, the layout of the passes
+(:func:`c3bench.solvers.admm.compiled_passes.iterate_in_lanes`), in two sets that alternate,
+so that a failed iteration leaves the last completed one intact, as the iteration-by-iteration
+loop does; they are transposed only on the way in and out.
 """
 
 from __future__ import annotations
@@ -34,7 +34,12 @@ import numpy as np
 
 from c3bench.solvers.admm.compiled_kernels import factorize_batch
 from c3bench.solvers.admm.compiled_kernels import jit as _jit
-from c3bench.solvers.admm.compiled_passes import iterate_in_lanes
+from c3bench.solvers.admm.compiled_passes import (
+    from_lanes,
+    iterate_in_lanes,
+    to_lanes,
+    z_from_lanes,
+)
 from c3bench.solvers.admm.loop import scale_dual
 
 __all__ = ["FACTORISATION_FAILED", "NON_FINITE", "run_plan"]
@@ -58,8 +63,8 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
              failed: np.ndarray, vectors: np.ndarray, Mc: np.ndarray, Mt: np.ndarray,
              consts: np.ndarray, p: np.ndarray, shared: bool, box: np.ndarray,
              ratios: np.ndarray, delta: np.ndarray, w: np.ndarray, iterates: np.ndarray,
-             terminals: np.ndarray, steps: np.ndarray, generated: np.ndarray
-             ) -> tuple[int, int, int]:
+             terminal: np.ndarray, steps: np.ndarray, generated: np.ndarray
+             ) -> tuple[int, int]:
     """Every iteration of the plan (module docstring).
 
     ``bases`` (N, ny, ny), ``two_rho_eta`` (N,) and ``consts`` (N, ny + 3) are the plan's
@@ -67,26 +72,25 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     :func:`~c3bench.solvers.admm.compiled_passes.iterate_in_lanes`; ``Y`` ... ``failed`` the
     group buffer (:class:`~c3bench.solvers.admm.compiled_factors.CompiledFactors`, ``m n``
     lanes: ``m`` is the group size); ``ratios`` (N - 1, ns);
-    ``delta`` and ``w`` (n, T, ns) the initial iterates (read only); ``iterates`` (2, 3, n,
-    T, ns) receives the set of ``(delta, w, z_steps)`` the return value names (set 0 holds the
-    initial ``delta`` and ``w`` when no iteration completed), ``terminals`` (2, n, nx) its
+    ``delta`` and ``w`` (n, T, ns) the initial iterates (read only); ``iterates`` (3, n, T,
+    ns) receives ``(delta, w, z_steps)`` after the last completed iteration (the initial
+    ``delta`` and ``w`` when none completed; ``z_steps`` then unset), ``terminal`` (n, nx) its
     ``z_terminal``; ``steps``
     the generated backward steps of :func:`~c3bench.solvers.admm.compiled_kernels.
     factorize_batch`, ``generated`` the generated passes of :func:`~c3bench.solvers.admm.
     compiled_passes.iterate_in_lanes`.
 
-    Returns ``(completed, set, code)``: the iterations completed, the set that holds the
-    iterates after the last of them, and 0, :data:`FACTORISATION_FAILED` or
-    :data:`NON_FINITE` for iteration ``completed``.
+    Returns ``(completed, code)``: the iterations completed and 0,
+    :data:`FACTORISATION_FAILED` or :data:`NON_FINITE` for iteration ``completed``.
     """
     N = bases.shape[0]
-    n, T, ns = iterates.shape[2], iterates.shape[3], iterates.shape[4]
+    n, T, ns = delta.shape
     group = failed.shape[0] // n
-    lanes = np.empty((2, 2, T, ns, n), iterates.dtype)  # (delta, w) sets, samples last
-    zts = np.empty((2, T + 1, ns, n), iterates.dtype)  # the sets' z (row T: terminal x)
-    _to_lanes(delta, lanes[0, 0])
-    _to_lanes(w, lanes[0, 1])
-    current = 0
+    lanes = np.empty((2, 2, T, ns, n), delta.dtype)  # (delta, w) sets, samples last
+    zts = np.empty((2, T + 1, ns, n), delta.dtype)  # the sets' z (row T: terminal x)
+    to_lanes(delta, lanes[0, 0])
+    to_lanes(w, lanes[0, 1])
+    current, completed, code = 0, N, 0
     for i in range(N):
         slot = i % group
         if slot == 0:
@@ -94,17 +98,16 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
             factorize_batch(A, Bv, d, MtM, bases[i:i + m], two_rho_eta[i:i + m], PT, ridge,
                             jacobi, zero, one, column_start, column_rows, Y, L, Sd, D, ABd,
                             failed, steps)
-        for j in range(n):
-            if failed[slot * n + j] >= 0:
-                _store(lanes[current], zts[current], iterates[current], terminals[current])
-                return i, current, FACTORISATION_FAILED
+        if failed[slot * n:(slot + 1) * n].max() >= 0:
+            completed, code = i, FACTORISATION_FAILED
+            break
         target = 1 - current
         if not iterate_in_lanes(vectors, lanes[current, 0], lanes[current, 1], Mc, Mt,
                                 consts[i], Y, L, Sd, D, ABd, slot, column_start, column_rows,
                                 row_start, row_columns, p, shared, box, zero, zts[target],
                                 lanes[target, 0], lanes[target, 1], generated):
-            _store(lanes[current], zts[current], iterates[current], terminals[current])
-            return i, current, NON_FINITE
+            completed, code = i, NON_FINITE
+            break
         current = target
         if i + 1 < N:
             dual = lanes[current, 1]
@@ -113,31 +116,7 @@ def run_plan(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                     ratio = ratios[i, a]
                     for j in range(n):
                         dual[k, a, j] = _scale_dual(dual[k, a, j], ratio)
-    _store(lanes[current], zts[current], iterates[current], terminals[current])
-    return N, current, 0
-
-
-@_jit
-def _to_lanes(samples_first: np.ndarray, samples_last: np.ndarray) -> None:
-    """``(n, T, ns)`` into ``(T, ns, n)``."""
-    n, T, ns = samples_first.shape
-    for j in range(n):
-        for k in range(T):
-            for a in range(ns):
-                samples_last[k, a, j] = samples_first[j, k, a]
-
-
-@_jit
-def _store(lanes: np.ndarray, zt: np.ndarray, iterates: np.ndarray, terminal: np.ndarray
-           ) -> None:
-    """One set's ``(delta, w)`` (2, T, ns, n) and ``z`` (T + 1, ns, n) back into ``iterates``
-    (3, n, T, ns) = ``(delta, w, z_steps)`` and ``terminal`` (n, nx)."""
-    n, T, ns = iterates.shape[1], iterates.shape[2], iterates.shape[3]
-    for j in range(n):
-        for k in range(T):
-            for a in range(ns):
-                iterates[0, j, k, a] = lanes[0, k, a, j]
-                iterates[1, j, k, a] = lanes[1, k, a, j]
-                iterates[2, j, k, a] = zt[k, a, j]
-        for a in range(terminal.shape[1]):
-            terminal[j, a] = zt[T, a, j]
+    from_lanes(lanes[current, 0], iterates[0])
+    from_lanes(lanes[current, 1], iterates[1])
+    z_from_lanes(zts[current], iterates[2], terminal)
+    return completed, code
