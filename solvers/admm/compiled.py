@@ -12,9 +12,10 @@ with numba (Lam, Pitrou & Seibert, "Numba: a LLVM-based Python JIT compiler", LL
   preallocated arrays (one compiled call, :func:`kernels.assemble`) and takes a geometric
   schedule's plan (``planned_rhos``, known before the first iteration);
 * the first iteration of each *group* of the plan (:func:`plan_group` rho values: at most
-  one block of lanes, rho x sample pairs) factorises the whole group for every sample in ONE
-  compiled call, in place in a preallocated buffer (lanes last), which stays in the core's
-  cache for the group's iterations; its backward steps run as code generated for the batch's
+  :data:`~c3bench.solvers.admm.compiled_factors.GROUP_LANES` lanes, rho x sample pairs)
+  factorises the whole group for every sample in ONE compiled call, in place in a
+  preallocated buffer (lanes last), which stays in the core's cache for the group's
+  iterations; its backward steps run as code generated for the batch's
   structure (:mod:`.compiled_codegen`, bit for bit the lane loops' results) where there is
   some;
 * :meth:`CompiledC3PlusKernel.step` runs the gradient, both linear passes, ``eta``, the

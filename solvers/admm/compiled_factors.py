@@ -65,14 +65,23 @@ class CompiledFactors:
 
 
 def plan_group(samples: int, planned: int) -> int:
-    """How many planned rho values are factorised together: as many as fill one block of
-    :data:`~c3bench.solvers.admm.compiled_kernels.LANE_BLOCK` lanes (rho x sample pairs),
-    at least one, so that a group is factorised in place in one block and its factors stay
-    in the core's cache until the iterations that use them (measured at 16 samples:
-    factorising 2 rho values before their two iterations is 10 % faster than factorising all
-    10 up front; at 64 samples one at a time is 17 % faster; at 1 sample all 10 together is
-    2-3 times faster than fewer)."""
-    return min(planned, max(1, kernels.LANE_BLOCK // samples))
+    """How many planned rho values are factorised together: as many as fill
+    :data:`GROUP_LANES` lanes (rho x sample pairs), at least one, so that a group is
+    factorised in place in one block and its factors stay in the core's cache until the
+    iterations that use them (measured at 16 samples: factorising 2 rho values before their two
+    iterations is 10 % faster than factorising all 10 up front; at 64 samples one at a time is
+    17 % faster; at 1 sample all 10 together is 2-3 times faster than fewer)."""
+    return min(planned, max(1, GROUP_LANES // samples))
+
+
+GROUP_LANES = 16
+"""Lanes of one plan group (:func:`plan_group`). 16, not a whole block of
+:data:`~c3bench.solvers.admm.compiled_kernels.LANE_BLOCK`: at 16 samples one rho value per
+group instead of two halves what a factorisation touches (factors and work arrays, about
+0.43 -> 0.22 MB), so that the step's working set stays inside the core's 1 MB L2 cache
+beside the LCS build's. Measured with ``c3bench perf --samples 16`` on the 2-core EPYC VM,
+alternated with the groups of 32 lanes, eight runs each: ADMM median 0.65 against 0.70 ms,
+shares of the matmul rate 25.3-28.9 % against 24.4-28.5 %."""
 
 
 def rho_key(rho: Mapping[str, float]) -> tuple[float, ...]:

@@ -21,8 +21,8 @@ import numpy as np
 
 from c3bench.problems.jit import jit
 
-__all__ = ["lane_indices", "lane_runs", "scale_lanes", "scaled_row_gathered", "scaled_row_run",
-           "store_block", "store_step", "used_columns"]
+__all__ = ["lane_indices", "lane_runs", "scale_lanes", "scale_one_run", "scaled_row_gathered",
+           "scaled_row_run", "store_block", "store_step", "used_columns"]
 
 
 @jit
@@ -116,6 +116,11 @@ def scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     ny = nx + nv
     runs = np.empty((nl, 4), np.int64)
     count = lane_runs(li, lj, nl, runs)
+    if count == 1:  # one rho value, consecutive samples: the common case, in simpler loops
+        scale_one_run(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one,
+                      runs[0, 1], np.uint64(runs[0, 2]), np.uint64(nl), Hy, S, Db, ABb,
+                      scratch)
+        return
     if 4 * count > nl:
         count = 0  # gathered below
     for a in range(ny):  # the scaling first, from the diagonal of H_y alone
@@ -154,6 +159,50 @@ def scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
         for r in range(count):
             scaled_row_run(a, A, Bv, d, np.uint64(runs[r, 0]), np.uint64(runs[r, 2]),
                             np.uint64(runs[r, 3]), scratch, Db, ABb)
+        for b in range(nx):
+            for l in range(nl):
+                S[a, b, l] = PT[a, b] * Db[a, l] * Db[b, l]
+
+
+@jit
+def scale_one_run(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
+                  base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray, ridge: Any,
+                  jacobi: bool, zero: Any, one: Any, rho: int, j0: Any, nl: Any,
+                  Hy: np.ndarray, S: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
+                  scratch: np.ndarray) -> None:
+    """:func:`scale_lanes` when its ``nl`` lanes are one run: rho ``rho`` for the samples
+    ``j0 .. j0 + nl`` (a plan group of one rho value, a block of a large batch). The same
+    operations in the same order, in loops whose lane index is the work arrays' own (at 16
+    lanes: 5.2 -> 3.7 us). ``j0`` and ``nl`` are unsigned, so that no index needs a
+    negative-index wraparound check."""
+    nx, nv = A.shape[0], Bv.shape[1]
+    ny = nx + nv
+    factor = two_rho_eta[rho]
+    for a in range(ny):
+        offset = base[rho, a, a]
+        for l in range(nl):
+            h = MtM[a, a, j0 + l] * factor + offset
+            Db[a, l] = one / np.sqrt(h) if (jacobi and h > zero) else one
+    for a in range(ny):
+        first, stop = used_columns(a, nx, ny)
+        for b in range(first, stop):
+            offset = base[rho, a, b]
+            for l in range(nl):
+                Hy[a, b, l] = (MtM[a, b, j0 + l] * factor + offset) * Db[a, l] * Db[b, l]
+    for a in range(nx, ny):
+        for l in range(nl):
+            Hy[a, a, l] += ridge
+    for a in range(nx):
+        for l in range(nl):
+            scratch[l] = one / Db[a, l]
+        for b in range(nx):
+            for l in range(nl):
+                ABb[a, b, l] = A[a, b, j0 + l] * scratch[l] * Db[b, l]
+        for b in range(nv):
+            for l in range(nl):
+                ABb[a, nx + b, l] = Bv[a, b, j0 + l] * scratch[l] * Db[nx + b, l]
+        for l in range(nl):
+            ABb[a, nx + nv, l] = d[a, j0 + l] * scratch[l]
         for b in range(nx):
             for l in range(nl):
                 S[a, b, l] = PT[a, b] * Db[a, l] * Db[b, l]
