@@ -1,6 +1,7 @@
 """The report's section on ``c3bench perf``: the latest run of each machine, with the ratios
 to ``c3plus-riccati`` and ``c3-osqp`` of the same run, the achieved GFLOP/s, the run's
-matmul rate and the load average (:func:`perf_section`, which
+matmul rate and the load average, then the compiled backend's targets over that machine's
+recent runs (:func:`history_lines`) (:func:`perf_section`, which
 :func:`bench.report.perf_report_section` returns)."""
 
 from __future__ import annotations
@@ -207,6 +208,61 @@ def _first(frame: pd.DataFrame, column: str) -> float:
     return float(values.iloc[0]) if len(values) else math.nan
 
 
+HISTORY_RUNS = 6
+"""Runs of one machine that :func:`history_lines` shows."""
+HISTORY_BACKEND = "c3plus-compiled"
+"""The backend whose targets :func:`history_lines` follows over the runs."""
+
+
+def history_lines(stored: pd.DataFrame, host: str, runs: int = HISTORY_RUNS) -> list[str]:
+    """The targets of :data:`HISTORY_BACKEND` over the last ``runs`` runs of ``host`` that
+    timed it at 16 samples (warm steps where the run stores the cache state): a table with
+    each run's ratios to ``c3plus-riccati`` (ADMM and whole step at 16 samples, ADMM at one)
+    and its share of the matmul rate, and how many runs met each target. On a shared machine
+    one run's verdict can be the machine's phase rather than the code (docs/admm.md), so
+    the latest run alone does not settle a target near its threshold. Nothing when fewer
+    than two such runs are stored."""
+    frame = stored[stored["host"].astype(str) == host]
+    timed = frame[(frame["backend"] == HISTORY_BACKEND) & (frame["samples"] == 16)
+                  & ~frame["skipped"].astype(bool)]
+    ids = sorted(timed["run_id"].astype(str).unique())[-runs:]
+    if len(ids) < 2:
+        return []
+    targets = (("ADMM at 16", 6.0), ("whole step at 16", 4.0), ("ADMM at 1", 10.0),
+               ("% matmul", 25.0))
+    met = {name: [0, 0] for name, _ in targets}
+    lines = [f"Recent runs on this machine: the last {len(ids)} that timed {HISTORY_BACKEND} "
+             "at 16 samples (warm cache; each run with the code current when it ran), its "
+             "speed-ups over c3plus-riccati and its share of the matmul rate through the run "
+             "(of the best at the start for runs stored before perf layout 5):",
+             "", "| run | load | ADMM at 16 | whole step at 16 | ADMM at 1 | % matmul |",
+             "|---|---|---|---|---|---|"]
+    for run_id in ids:
+        summary = summarize(frame[frame["run_id"].astype(str) == run_id])
+        if (summary["cache"] == CacheState.WARM.value).any():
+            summary = summary[summary["cache"] == CacheState.WARM.value]
+        share = _at(summary, HISTORY_BACKEND, 16, "rate_share_run")
+        if not math.isfinite(share):
+            share = _at(summary, HISTORY_BACKEND, 16, "rate_share")
+        values = (1 / _at(summary, HISTORY_BACKEND, 16, "admm_ratio_riccati"),
+                  1 / _at(summary, HISTORY_BACKEND, 16, "ratio_riccati"),
+                  1 / _at(summary, HISTORY_BACKEND, 1, "admm_ratio_riccati"), 100 * share)
+        for (name, threshold), value in zip(targets, values, strict=True):
+            if math.isfinite(value):
+                met[name][0] += value >= threshold
+                met[name][1] += 1
+        load = _at(summary, HISTORY_BACKEND, 16, "load_avg")
+        cells = [f"{v:.1f}" + ("" if i == 3 else "x") if math.isfinite(v) else "-"
+                 for i, v in enumerate(values)]
+        lines.append(f"| {run_id} | " + (f"{load:.2f}" if math.isfinite(load) else "-")
+                     + " | " + " | ".join(cells) + " |")
+    counts = [f"{name} >= {threshold:g}{' %' if name == '% matmul' else 'x'} in "
+              f"{met[name][0]} of {met[name][1]}" for name, threshold in targets if met[name][1]]
+    lines += ["", f"{HISTORY_BACKEND} met its targets in these runs: " + "; ".join(counts)
+              + ".", ""]
+    return lines
+
+
 def perf_section(results_dir: str | Path, figure_link: str | None = None) -> str:
     """A Markdown section on the control-step time (reads ``<results_dir>/perf/``): the
     latest run of each machine, one table per machine (module docstring)."""
@@ -226,6 +282,7 @@ def perf_section(results_dir: str | Path, figure_link: str | None = None) -> str
         if len(hosts) > 1:
             lines += [f"### {host}", ""]
         lines += run_lines(frame[frame["host"].astype(str) == host])
+        lines += history_lines(stored, host)
     link = figure_link or f"{store.PERF_DIR}/figures/{PERF_FIGURE}"
     lines += [f"![control-step time vs samples]({link})", ""]
     lines += gpu_lines(Path(results_dir) / store.PERF_DIR / "gpu")

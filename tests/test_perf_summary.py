@@ -185,3 +185,31 @@ def test_the_figure_legend_counts_steps_per_cache_state() -> None:
     group = pd.DataFrame({"cache": ["cold", "warm"], "repeats": [12, 36]})
     assert _counts(group) == "12 cold, 36 warm"
     assert _counts(group[group["cache"] == "warm"]) == "36 warm"
+
+
+def test_history_counts_the_targets_met_over_a_machines_recent_runs() -> None:
+    """Three runs of the compiled backend (shares of the 8 GFLOP/s run rate 30, 20 and 26 %;
+    one run's one-sample ADMM only 8x): each target is counted over the runs, and a run that
+    did not time the compiled backend at 16 samples is left out."""
+    from c3bench.bench.perf_report import history_lines
+
+    rows = []
+    for run, executed, single in (("r1", 2.4, 0.25), ("r2", 1.6, 0.1), ("r3", 2.08, 0.1)):
+        rows += (_rows(run, "c3plus-riccati", 16, [20.0], [8.0])
+                 + _rows(run, "c3plus-riccati", 1, [3.0], [2.0])
+                 + _rows(run, "c3plus-compiled", 16, [4.0], [1.0], executed=executed)
+                 + _rows(run, "c3plus-compiled", 1, [1.0], [single]))
+    rows += _rows("r4", "c3plus-riccati", 16, [20.0], [8.0])  # no compiled row: left out
+    stored = pd.DataFrame(rows, columns=list(perf_store.PERF_COLUMNS))
+    lines = history_lines(stored, "h")
+    table = [line for line in lines if line.startswith("| r") and not line.startswith("| run")]
+    assert [line.split(" | ")[0] for line in table] == ["| r1", "| r2", "| r3"]
+    assert table[0] == "| r1 | 0.50 | 8.0x | 5.0x | 8.0x | 30.0 |"
+    summary = lines[-2]
+    assert "ADMM at 16 >= 6x in 3 of 3" in summary
+    assert "whole step at 16 >= 4x in 3 of 3" in summary
+    assert "ADMM at 1 >= 10x in 2 of 3" in summary and "% matmul >= 25 % in 2 of 3" in summary
+    assert len([line for line in history_lines(stored, "h", runs=2)
+                if line.startswith("| r") and not line.startswith("| run")]) == 2
+    assert history_lines(stored[stored["run_id"] == "r1"], "h") == []  # one run: nothing
+    assert history_lines(stored, "other host") == []
