@@ -45,6 +45,27 @@ def _verdict(ok: bool) -> str:
     return "met" if ok else "not met"
 
 
+SPEEDUP_TARGETS: tuple[tuple[str, int, str, float], ...] = (
+    ("ADMM", 16, "admm_ratio_riccati", 6.0), ("whole step", 16, "ratio_riccati", 4.0),
+    ("ADMM", 1, "admm_ratio_riccati", 10.0))
+"""The fast backends' speed-ups over ``c3plus-riccati`` in the same run: ``(what, samples,
+summary column, at least)``."""
+SHARE_TARGET = 0.25
+"""The compiled ADMM's share of the matmul rate at 16 samples (:func:`_judged_share`)."""
+
+
+def _speedup(summary: pd.DataFrame, backend: str, samples: int, column: str) -> float:
+    """``backend``'s speed-up over ``c3plus-riccati`` (1 / the ratio column), NaN if absent."""
+    return 1 / _at(summary, backend, samples, column)
+
+
+def _judged_share(summary: pd.DataFrame, backend: str) -> float:
+    """The ADMM's share of the matmul rate at 16 samples that the 25 % target is judged on: of
+    the rate through the run, or of the best at the start for runs before perf layout 5."""
+    share_run = _at(summary, backend, 16, "rate_share_run")
+    return share_run if math.isfinite(share_run) else _at(summary, backend, 16, "rate_share")
+
+
 def target_lines(summary: pd.DataFrame) -> list[str]:
     """The issue's targets (ratios within the run) for each fast backend measured at 16, in
     each cache state measured (:class:`bench.perf_store.CacheState`)."""
@@ -66,14 +87,11 @@ def _target_lines(summary: pd.DataFrame, label: str) -> list[str]:
         parts = [f"16 samples: step {format_ms(step16)} ms (<= {TARGET_STEP_MS:g} ms: "
                  f"{_verdict(step16 <= TARGET_STEP_MS)})"]
         if backend != "c3plus-riccati":
-            for samples, column, factor in ((16, "admm_ratio_riccati", 6),
-                                            (16, "ratio_riccati", 4),
-                                            (1, "admm_ratio_riccati", 10)):
-                ratio = _at(summary, backend, samples, column)
-                if math.isfinite(ratio):
-                    what = "ADMM" if column.startswith("admm") else "whole step"
-                    parts.append(f"{what} at {samples}: {_factor(1 / ratio)}x riccati (>= "
-                                 f"{factor}x: {_verdict(1 / ratio >= factor)})")
+            for what, samples, column, factor in SPEEDUP_TARGETS:
+                speedup = _speedup(summary, backend, samples, column)
+                if math.isfinite(speedup):
+                    parts.append(f"{what} at {samples}: {_factor(speedup)}x riccati (>= "
+                                 f"{factor:g}x: {_verdict(speedup >= factor)})")
         for column, what in (("ratio_osqp", "whole step"), ("admm_ratio_osqp", "ADMM")):
             osqp = _at(summary, backend, 16, column)
             if math.isfinite(osqp):
@@ -175,14 +193,14 @@ def _share_parts(summary: pd.DataFrame, backend: str) -> list[str]:
     the start; runs before perf layout 5 have the second only, and it is judged."""
     share_run = _at(summary, backend, 16, "rate_share_run")
     share = _at(summary, backend, 16, "rate_share")
-    judged = share_run if math.isfinite(share_run) else share
+    judged = _judged_share(summary, backend)
     if not math.isfinite(judged):
         return []
     text = f"ADMM at {100 * judged:.1f} % of the matmul rate"
     if math.isfinite(share_run):
         text += " through the run"
     if backend == "c3plus-compiled":
-        text += f" (>= 25 %: {_verdict(judged >= 0.25)})"
+        text += f" (>= {100 * SHARE_TARGET:g} %: {_verdict(judged >= SHARE_TARGET)})"
     if math.isfinite(share_run) and math.isfinite(share):
         text += f", {100 * share:.1f} % of its best at the start"
     return [text]
@@ -228,39 +246,43 @@ def history_lines(stored: pd.DataFrame, host: str, runs: int = HISTORY_RUNS) -> 
     ids = sorted(timed["run_id"].astype(str).unique())[-runs:]
     if len(ids) < 2:
         return []
-    targets = (("ADMM at 16", 6.0), ("whole step at 16", 4.0), ("ADMM at 1", 10.0),
-               ("% matmul", 25.0))
-    met = {name: [0, 0] for name, _ in targets}
+    names = [f"{what} at {samples}" for what, samples, _, _ in SPEEDUP_TARGETS]
+    met = {name: [0, 0] for name in [*names, "% matmul"]}
     lines = [f"Recent runs on this machine: the last {len(ids)} that timed {HISTORY_BACKEND} "
              "at 16 samples (warm cache; each run with the code current when it ran), its "
              "speed-ups over c3plus-riccati and its share of the matmul rate through the run "
              "(of the best at the start for runs stored before perf layout 5):",
-             "", "| run | load | ADMM at 16 | whole step at 16 | ADMM at 1 | % matmul |",
-             "|---|---|---|---|---|---|"]
+             "", "| run | load | " + " | ".join(names) + " | % matmul |",
+             "|---|---|" + "---|" * (len(names) + 1)]
     for run_id in ids:
         summary = summarize(frame[frame["run_id"].astype(str) == run_id])
         if (summary["cache"] == CacheState.WARM.value).any():
             summary = summary[summary["cache"] == CacheState.WARM.value]
-        share = _at(summary, HISTORY_BACKEND, 16, "rate_share_run")
-        if not math.isfinite(share):
-            share = _at(summary, HISTORY_BACKEND, 16, "rate_share")
-        values = (1 / _at(summary, HISTORY_BACKEND, 16, "admm_ratio_riccati"),
-                  1 / _at(summary, HISTORY_BACKEND, 16, "ratio_riccati"),
-                  1 / _at(summary, HISTORY_BACKEND, 1, "admm_ratio_riccati"), 100 * share)
-        for (name, threshold), value in zip(targets, values, strict=True):
-            if math.isfinite(value):
-                met[name][0] += value >= threshold
-                met[name][1] += 1
+        cells = []
+        for name, (_, samples, column, factor) in zip(names, SPEEDUP_TARGETS, strict=True):
+            speedup = _speedup(summary, HISTORY_BACKEND, samples, column)
+            cells.append(_count(met[name], speedup, factor, f"{speedup:.1f}x"))
+        share = _judged_share(summary, HISTORY_BACKEND)
+        cells.append(_count(met["% matmul"], share, SHARE_TARGET, f"{100 * share:.1f}"))
         load = _at(summary, HISTORY_BACKEND, 16, "load_avg")
-        cells = [f"{v:.1f}" + ("" if i == 3 else "x") if math.isfinite(v) else "-"
-                 for i, v in enumerate(values)]
         lines.append(f"| {run_id} | " + (f"{load:.2f}" if math.isfinite(load) else "-")
                      + " | " + " | ".join(cells) + " |")
-    counts = [f"{name} >= {threshold:g}{' %' if name == '% matmul' else 'x'} in "
-              f"{met[name][0]} of {met[name][1]}" for name, threshold in targets if met[name][1]]
+    thresholds = [f"{factor:g}x" for *_, factor in SPEEDUP_TARGETS] + [
+        f"{100 * SHARE_TARGET:g} %"]
+    counts = [f"{name} >= {threshold} in {met[name][0]} of {met[name][1]}"
+              for name, threshold in zip(met, thresholds, strict=True) if met[name][1]]
     lines += ["", f"{HISTORY_BACKEND} met its targets in these runs: " + "; ".join(counts)
               + ".", ""]
     return lines
+
+
+def _count(tally: list[int], value: float, threshold: float, text: str) -> str:
+    """Add a finite ``value`` to ``tally`` (met, measured) against ``threshold``; its cell."""
+    if not math.isfinite(value):
+        return "-"
+    tally[0] += value >= threshold
+    tally[1] += 1
+    return text
 
 
 def perf_section(results_dir: str | Path, figure_link: str | None = None) -> str:

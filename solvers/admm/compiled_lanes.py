@@ -21,8 +21,8 @@ import numpy as np
 
 from c3bench.problems.jit import jit
 
-__all__ = ["lane_indices", "lane_runs", "scale_lanes", "scale_one_run", "scaled_row_gathered",
-           "scaled_row_run", "store_block", "store_step", "used_columns"]
+__all__ = ["lane_indices", "lane_runs", "scale_lanes", "scaled_hessian", "scaled_hessian_one_run",
+           "scaled_row_gathered", "scaled_row_run", "store_block", "store_step", "used_columns"]
 
 
 @jit
@@ -117,12 +117,37 @@ def scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
     runs = np.empty((nl, 4), np.int64)
     count = lane_runs(li, lj, nl, runs)
     if count == 1:  # one rho value, consecutive samples: the common case, in simpler loops
-        scale_one_run(A, Bv, d, MtM, base, two_rho_eta, PT, ridge, jacobi, zero, one,
-                      runs[0, 1], np.uint64(runs[0, 2]), np.uint64(nl), Hy, S, Db, ABb,
-                      scratch)
-        return
-    if 4 * count > nl:
-        count = 0  # gathered below
+        scaled_hessian_one_run(MtM, base, two_rho_eta, jacobi, zero, one, nx, runs[0, 1],
+                               np.uint64(runs[0, 2]), np.uint64(nl), Hy, Db)
+    else:
+        if 4 * count > nl:
+            count = 0  # gathered
+        scaled_hessian(MtM, base, two_rho_eta, jacobi, zero, one, nx, li, lj, nl, runs,
+                       count, Hy, Db, scratch)
+    for a in range(nx, ny):
+        for l in range(nl):
+            Hy[a, a, l] += ridge
+    for a in range(nx):
+        for l in range(nl):
+            scratch[l] = one / Db[a, l]
+        if count == 0:
+            scaled_row_gathered(a, A, Bv, d, lj, nl, scratch, Db, ABb)
+        for r in range(count):
+            scaled_row_run(a, A, Bv, d, np.uint64(runs[r, 0]), np.uint64(runs[r, 2]),
+                            np.uint64(runs[r, 3]), scratch, Db, ABb)
+        for b in range(nx):
+            for l in range(nl):
+                S[a, b, l] = PT[a, b] * Db[a, l] * Db[b, l]
+
+
+@jit
+def scaled_hessian(MtM: np.ndarray, base: np.ndarray, two_rho_eta: np.ndarray, jacobi: bool,
+                   zero: Any, one: Any, nx: int, li: np.ndarray, lj: np.ndarray, nl: int,
+                   runs: np.ndarray, count: int, Hy: np.ndarray, Db: np.ndarray,
+                   scratch: np.ndarray) -> None:
+    """``D`` and the scaled ``H_y`` of :func:`scale_lanes` (before the ridge) for lanes read
+    by ``count`` runs (:func:`lane_runs`), or gathered lane by lane when ``count`` is 0."""
+    ny = MtM.shape[0]
     for a in range(ny):  # the scaling first, from the diagonal of H_y alone
         if count == 0:
             for l in range(nl):
@@ -148,35 +173,18 @@ def scale_lanes(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
                 for q in range(np.uint64(runs[r, 3])):
                     Hy[a, b, l0 + q] = (MtM[a, b, j0 + q] * factor + offset) \
                         * Db[a, l0 + q] * Db[b, l0 + q]
-    for a in range(nx, ny):
-        for l in range(nl):
-            Hy[a, a, l] += ridge
-    for a in range(nx):
-        for l in range(nl):
-            scratch[l] = one / Db[a, l]
-        if count == 0:
-            scaled_row_gathered(a, A, Bv, d, lj, nl, scratch, Db, ABb)
-        for r in range(count):
-            scaled_row_run(a, A, Bv, d, np.uint64(runs[r, 0]), np.uint64(runs[r, 2]),
-                            np.uint64(runs[r, 3]), scratch, Db, ABb)
-        for b in range(nx):
-            for l in range(nl):
-                S[a, b, l] = PT[a, b] * Db[a, l] * Db[b, l]
 
 
 @jit
-def scale_one_run(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
-                  base: np.ndarray, two_rho_eta: np.ndarray, PT: np.ndarray, ridge: Any,
-                  jacobi: bool, zero: Any, one: Any, rho: int, j0: Any, nl: Any,
-                  Hy: np.ndarray, S: np.ndarray, Db: np.ndarray, ABb: np.ndarray,
-                  scratch: np.ndarray) -> None:
-    """:func:`scale_lanes` when its ``nl`` lanes are one run: rho ``rho`` for the samples
+def scaled_hessian_one_run(MtM: np.ndarray, base: np.ndarray, two_rho_eta: np.ndarray,
+                           jacobi: bool, zero: Any, one: Any, nx: int, rho: int, j0: Any,
+                           nl: Any, Hy: np.ndarray, Db: np.ndarray) -> None:
+    """:func:`scaled_hessian` when the ``nl`` lanes are one run: rho ``rho`` for the samples
     ``j0 .. j0 + nl`` (a plan group of one rho value, a block of a large batch). The same
-    operations in the same order, in loops whose lane index is the work arrays' own (at 16
-    lanes: 5.2 -> 3.7 us). ``j0`` and ``nl`` are unsigned, so that no index needs a
-    negative-index wraparound check."""
-    nx, nv = A.shape[0], Bv.shape[1]
-    ny = nx + nv
+    operations in the same order, in loops whose lane index is the work arrays' own (the
+    setup of 16 lanes: 5.2 -> 4.2-4.5 us). ``j0`` and ``nl`` are unsigned, so that no index needs
+    a negative-index wraparound check."""
+    ny = MtM.shape[0]
     factor = two_rho_eta[rho]
     for a in range(ny):
         offset = base[rho, a, a]
@@ -189,23 +197,6 @@ def scale_one_run(A: np.ndarray, Bv: np.ndarray, d: np.ndarray, MtM: np.ndarray,
             offset = base[rho, a, b]
             for l in range(nl):
                 Hy[a, b, l] = (MtM[a, b, j0 + l] * factor + offset) * Db[a, l] * Db[b, l]
-    for a in range(nx, ny):
-        for l in range(nl):
-            Hy[a, a, l] += ridge
-    for a in range(nx):
-        for l in range(nl):
-            scratch[l] = one / Db[a, l]
-        for b in range(nx):
-            for l in range(nl):
-                ABb[a, b, l] = A[a, b, j0 + l] * scratch[l] * Db[b, l]
-        for b in range(nv):
-            for l in range(nl):
-                ABb[a, nx + b, l] = Bv[a, b, j0 + l] * scratch[l] * Db[nx + b, l]
-        for l in range(nl):
-            ABb[a, nx + nv, l] = d[a, j0 + l] * scratch[l]
-        for b in range(nx):
-            for l in range(nl):
-                S[a, b, l] = PT[a, b] * Db[a, l] * Db[b, l]
 
 
 @jit
