@@ -40,7 +40,7 @@ SCHEMA: tuple[Column, ...] = (
            "provenance and its arrays rounded to ~1e-9 of each array's largest entry); a "
            "cell of a changed instance is stale and rerun, one regenerated elsewhere with "
            "last-bit noise is not."),
-    Column("family", "str", "Subproblem family: c3plus_qp, c3_qp, projection, mpcc, lcp."),
+    Column("family", "str", "Subproblem family: c3plus_qp, c3_qp, projection, mpcc, lcp, lcp_general, qp (imported)."),
     Column("solver", "str", "Registry name of the backend."),
     Column("solver_version", "str", "Version of the backend's package ('-' for our own code)."),
     Column("settings", "str", "Settings profile: default, low_accuracy, mid_accuracy, "

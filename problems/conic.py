@@ -44,13 +44,16 @@ CONIC_KEYS: tuple[str, ...] = ("h", "g", "a", "lba", "uba", "lbx", "ubx")
 """The keys of a saved conic problem: CasADi's ``conic_in()`` names of a QP's data."""
 
 
-def dense(value: Any) -> np.ndarray:
+def dense(value: Any, label: str = "value") -> np.ndarray:
     """``value`` as a float array: ``scipy.sparse`` via ``.toarray()``, CasADi ``DM`` via
-    ``.full()``, anything else via ``np.asarray``."""
+    ``.full()``, anything else via ``np.asarray``; :class:`InputError` naming ``label`` for
+    complex values (never cut to their real part)."""
     if hasattr(value, "toarray"):
         value = value.toarray()
     elif hasattr(value, "full"):
         value = value.full()
+    if np.iscomplexobj(value):
+        raise InputError(f"conic: {label} is complex; a QP's data are real numbers")
     return np.asarray(value, dtype=np.float64)
 
 
@@ -68,17 +71,21 @@ def conic_arrays(*, H: Any, g: Any, A: Any = None, lba: Any = None, uba: Any = N
     Raises
     ------
     InputError
-        Shapes that do not fit ``n`` (or ``A``'s rows), ``lba > uba`` or ``lbx > ubx``,
-        non-finite ``H``, ``g`` or ``A``, or ``lba`` / ``uba`` without ``A``.
+        Shapes that do not fit ``n`` (or ``A``'s rows), no variable (``g`` empty), complex
+        values, ``lba > uba`` or ``lbx > ubx``, a lower side ``+inf`` or an upper side
+        ``-inf`` (infeasible), non-finite ``H``, ``g`` or ``A``, or ``lba`` / ``uba`` without
+        ``A``.
     """
-    g_vec = dense(g).reshape(-1)
+    g_vec = dense(g, "g").reshape(-1)
     n = g_vec.size
+    if n == 0:
+        raise InputError("conic: g is empty: a QP needs at least one variable")
     arrays: dict[str, np.ndarray] = {"g": g_vec, "h": _matrix("H", H, n, n)}
     if A is None:
         if lba is not None or uba is not None:
             raise InputError("conic: lba / uba given without A")
     else:
-        a = dense(A)
+        a = dense(A, "A")
         a = a.reshape(1, -1) if a.ndim == 1 else a
         rows = a.shape[0]
         arrays["a"] = _matrix("A", a, rows, n)
@@ -98,20 +105,27 @@ def conic_arrays(*, H: Any, g: Any, A: Any = None, lba: Any = None, uba: Any = N
 
 def _matrix(label: str, value: Any, rows: int, cols: int) -> np.ndarray:
     """A ``rows x cols`` float matrix (``H = None`` is the zero matrix: an LP)."""
-    matrix = np.zeros((rows, cols)) if value is None else dense(value)
+    matrix = np.zeros((rows, cols)) if value is None else dense(value, label)
     if matrix.shape != (rows, cols):
         raise InputError(f"conic: {label} must have shape ({rows}, {cols}), got {matrix.shape}")
     return matrix
 
 
 def _side(label: str, value: Any, size: int, default: float) -> np.ndarray:
-    """A bound vector of ``size`` entries (a scalar is broadcast; ``None`` is ``default``)."""
-    vector = np.full(size, default) if value is None else dense(value).reshape(-1)
+    """A bound vector of ``size`` entries (a scalar is broadcast; ``None`` is ``default``,
+    ``-inf`` for a lower side, ``+inf`` for an upper one). A lower side ``+inf`` or an upper
+    side ``-inf`` is infeasible: :class:`InputError` naming the entry."""
+    vector = np.full(size, default) if value is None else dense(value, label).reshape(-1)
     if vector.size == 1 and size != 1:
         vector = np.full(size, float(vector[0]))
     if vector.shape != (size,) or np.any(np.isnan(vector)):
         raise InputError(f"conic: {label} must be {size} numbers (no NaN), got shape "
                          f"{vector.shape}")
+    wrong = -default  # +inf for a lower side, -inf for an upper one
+    hits = np.flatnonzero(vector == wrong)
+    if hits.size:
+        raise InputError(f"conic: {label}[{int(hits[0])}] = {wrong:+}: an infeasible "
+                         f"{'lower' if default < 0 else 'upper'} side")
     return vector
 
 

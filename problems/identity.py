@@ -12,8 +12,10 @@ instance's identity here is therefore
    configuration, not from floating-point computation), without ``objective_offset`` (a
    computed number, fingerprinted with the arrays), plus the suite manifest's ``config``
    table and ``suite`` table (generator settings; ``generator_version`` too when a
-   generator writes one) without the local paths ``instances_from`` and ``imported_from``;
-   compared exactly;
+   generator writes one) without the local paths ``instances_from`` and ``imported_from``,
+   and without an imported instance's ``meta.source`` (the file ``problems import`` read:
+   byte-identical files imported from another folder are the same instance); compared
+   exactly;
 2. a **fingerprint**: SHA-256 of every array rounded on a grid relative to the array's
    largest magnitude (below), compared exactly.
 
@@ -37,7 +39,9 @@ machine rounds *its* arrays with the stored choice. Hence:
 * any change of a value by one unit or more (9.3e-10 of ``max|a|``) changes it: stale;
 * byte-identical files give the same fingerprint and the same ``id``: the string the rows
   store, the first 16 hex digits of SHA-256 of the provenance and of the file bytes the
-  identity was first made from (kept, with its rounding choices, as long as it holds).
+  identity was first made from (kept, with its rounding choices, as long as it holds; for an
+  imported instance the header's bytes are replaced by the header without its local
+  ``meta.source``, so the same files imported from two folders get the same ``id``).
   Rows stored before this rule hold a plain byte hash: they are stale once, as is a suite
   whose generator config changed without changing its files.
 
@@ -72,6 +76,10 @@ LOCAL_KEYS: tuple[str, ...] = ("instances_from", "imported_from")
 copied its instances from, and the folder ``problems import`` read (a path; the imported
 arrays themselves are fingerprinted), so that re-importing a folder with one file changed
 makes only that instance stale."""
+LOCAL_META_KEYS: tuple[str, ...] = ("source",)
+"""Metadata of an imported instance (``meta.imported``) that describes the local machine:
+the file (a path) or module item ``problems import`` read; the arrays it held are
+fingerprinted."""
 OFFSET_KEY = "objective_offset"
 """The header's computed constant, fingerprinted as a 0-d array under this key."""
 
@@ -137,8 +145,19 @@ def fingerprint(arrays: dict[str, np.ndarray], choices: dict[str, GridChoice]) -
     return digest.hexdigest()
 
 
+def portable_header(header: dict[str, Any]) -> dict[str, Any]:
+    """``header`` without what describes the local machine: an imported instance's
+    :data:`LOCAL_META_KEYS` (``header`` itself when it has none)."""
+    meta = header.get("meta")
+    if not (isinstance(meta, dict) and meta.get("imported") is True
+            and any(key in meta for key in LOCAL_META_KEYS)):
+        return header
+    return {**header, "meta": {k: v for k, v in meta.items() if k not in LOCAL_META_KEYS}}
+
+
 def provenance(header: dict[str, Any], manifest: dict[str, Any] | None) -> str:
     """SHA-256 of what generated the instance (module docstring, item 1)."""
+    header = portable_header(header)
     manifest = manifest or {}
     suite = manifest.get("suite")
     if isinstance(suite, dict):
@@ -156,6 +175,17 @@ def byte_hash(json_path: Path) -> str:
     digest = hashlib.sha256()
     for path in (json_path, json_path.with_suffix(".npz")):
         digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _content_hash(json_path: Path, header: dict[str, Any]) -> str:
+    """:func:`byte_hash`, with the header's bytes replaced by its :func:`portable_header`
+    (canonical JSON) when it holds local metadata."""
+    portable = portable_header(header)
+    if portable is header:
+        return byte_hash(json_path)
+    digest = hashlib.sha256(json.dumps(portable, sort_keys=True, default=str).encode())
+    digest.update(json_path.with_suffix(".npz").read_bytes())
     return digest.hexdigest()[:16]
 
 
@@ -219,7 +249,7 @@ def identify(json_path: str | Path, known: InstanceIdentity | None = None,
             and fingerprint(arrays, known.choices) == known.fingerprint):
         return known
     choices = {k: GridChoice.of(np.asarray(arrays[k], dtype=np.float64)) for k in floats}
-    made = hashlib.sha256(f"{origin}|{byte_hash(json_path)}".encode()).hexdigest()[:16]
+    made = hashlib.sha256(f"{origin}|{_content_hash(json_path, header)}".encode()).hexdigest()[:16]
     return InstanceIdentity(made, origin, fingerprint(arrays, choices), choices)
 
 

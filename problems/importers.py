@@ -6,22 +6,38 @@ Two sources (``c3bench problems import``):
   its keys:
 
   - qpsolvers' ``Problem.save`` keys (``P q G h A b lb ub``; only ``P`` and ``q`` are
-    required, a missing key or one stored as ``None`` means the block is absent): a ``qp``
-    instance;
+    required, a missing key or one stored as ``None`` means the block is absent; ``None`` is
+    recognised without unpickling it): a ``qp`` instance;
   - CasADi ``conic`` names (``h g a lba uba lbx ubx``, written by
     :func:`c3bench.problems.conic.save_conic`; a lower-case ``g`` and no ``q``): converted
     by :func:`c3bench.problems.conic.conic_to_qpsolvers` into a ``qp`` instance;
   - ``F`` and ``q``: the LCP ``0 <= lam perp F lam + q >= 0`` with any square ``F``, an
     ``lcp_general`` instance (:func:`c3bench.problems.families.lcp_general`);
-* a Python module (``--module``) defining a qpbenchmark-style test set: a function, or a
-  class whose instances are iterable, yielding ``qpsolvers.Problem`` objects (or
-  ``(name, problem)`` pairs; a problem's ``name`` attribute is used when it has one).
+* a Python module (``--module``) defining qpbenchmark-style test sets, yielding
+  ``qpsolvers.Problem`` objects (or ``(name, problem)`` pairs; a problem's ``name``
+  attribute is used when it has one). A test set is a public object defined in the module
+  (not imported into it) that is either
 
-Each QP is checked (finite, shapes that fit, ``P`` symmetric after
-``P <- (P + P^T) / 2``, which leaves the objective unchanged, and positive semi-definite) and
-becomes a :class:`~c3bench.problems.instance.Problem` of the ``qp`` family with metadata
-``{"source": ..., "imported": True}``. A file that is not such a problem raises
-:class:`~c3bench.problems.errors.InputError` naming the file (or the module and the item).
+  - a *generator function* (its body has a ``yield``) callable without arguments, or
+  - a *class* with ``__iter__`` (its own or inherited, e.g. from qpbenchmark's ``TestSet``)
+    constructible without arguments: it is instantiated and iterated.
+
+  Nothing else is called or refused: plain functions (a ``main()``, a helper returning a
+  list), classes without ``__iter__``, and callables that need arguments are skipped (give
+  helpers a leading ``_`` to be explicit). An exception raised by a test set (constructing,
+  calling or iterating it, or reading a yielded problem's attributes) is an
+  :class:`~c3bench.problems.errors.InputError` naming the module and the test set.
+
+Each QP is checked (real numbers, at least one variable, finite matrices and right-hand
+sides, no lower bound ``+inf`` and no upper bound ``-inf`` (infeasible), shapes that fit,
+``P`` symmetric after ``P <- (P + P^T) / 2``, which leaves the objective unchanged, and
+positive semi-definite) and becomes a :class:`~c3bench.problems.instance.Problem` of the
+``qp`` family with metadata ``{"source": ..., "imported": True}`` (``source``, a local path,
+is not part of the instance's identity: :mod:`c3bench.problems.identity`). A file that is not
+such a problem raises :class:`~c3bench.problems.errors.InputError` naming the file and the
+key (or the module and the item): among others a key of the file stored as a pickled Python
+object (what ``numpy.savez`` makes of a ``scipy.sparse`` matrix; pickles are never loaded),
+complex values, and, in a conic file, a key that is not a CasADi name.
 
 Part of the plant-free core's dependencies: numpy only (neither qpsolvers nor CasADi is
 imported here; a module's objects are read by their attributes).
@@ -32,14 +48,14 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import pickletools
 import re
-from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from c3bench.problems.conic import conic_to_qpsolvers, is_conic
+from c3bench.problems.conic import CONIC_KEYS, conic_to_qpsolvers, is_conic
 from c3bench.problems.errors import InputError
 from c3bench.problems.families import lcp_general
 from c3bench.problems.instance import MANIFEST, Problem, atomic_write_bytes, save_problem
@@ -60,13 +76,24 @@ def instance_name(stem: str) -> str:
     return name or "problem"
 
 
-def _optional(stored: Any, key: str) -> np.ndarray | None:
-    """``stored[key]`` as an array, ``None`` when absent or saved as ``None`` (an object
-    array, which ``allow_pickle=False`` refuses: qpsolvers' own reading of it)."""
-    try:
-        value = stored[key]
-    except (KeyError, ValueError):
-        return None
+_REAL_KINDS = "biuf"
+"""NumPy dtype kinds of real numbers (bool, signed and unsigned integers, floats)."""
+PICKLED_HELP = ("save it as a dense array (e.g. P.toarray() for a scipy.sparse matrix), "
+                "write the file with c3bench.problems.conic.save_conic (which densifies "
+                "scipy.sparse and casadi.DM values), or import the qpsolvers.Problem from a "
+                "--module test set")
+"""How to store a key that was saved as a pickled object (pickles are never loaded)."""
+_MEMO_OPCODES = frozenset({"MEMOIZE", "PUT", "BINPUT", "LONG_BINPUT", "FRAME"})
+
+
+class _Pickled:
+    """A key stored as a pickled Python object other than ``None`` (not loaded)."""
+
+
+def _real(key: str, value: Any) -> np.ndarray | None:
+    """``value`` as an array of real numbers, ``None`` when it is ``None`` (or a 0-d object
+    array holding ``None``); ``ValueError`` naming ``key`` for complex or non-numeric data.
+    A ``scipy.sparse`` matrix (from a module's Problem) is densified."""
     if value is None:
         return None
     if hasattr(value, "toarray"):  # a scipy sparse matrix from a module's Problem
@@ -74,7 +101,45 @@ def _optional(stored: Any, key: str) -> np.ndarray | None:
     array = np.asarray(value)
     if array.dtype == object and array.ndim == 0 and array.item() is None:
         return None
+    if array.dtype.kind == "c":
+        raise ValueError(f"key {key!r} is complex ({array.dtype}); a QP's data are real "
+                         "numbers (nothing is cut to its real part)")
+    if array.dtype.kind not in _REAL_KINDS:
+        raise ValueError(f"key {key!r} holds {array.dtype} values, not real numbers")
     return array
+
+
+def _pickled_none(stream: Any) -> bool:
+    """Whether a ``.npy`` member (a stream at its start) is the 0-d object array holding
+    ``None`` that ``numpy.savez`` writes for ``key=None`` (qpsolvers' absent blocks).
+
+    Decided from the header and the pickle's opcodes (:mod:`pickletools`), which executes
+    nothing: the array's object list must be exactly ``[None]``."""
+    version = np.lib.format.read_magic(stream)
+    shape, _, _ = (np.lib.format.read_array_header_1_0(stream) if version == (1, 0)
+                   else np.lib.format.read_array_header_2_0(stream))
+    if shape != ():
+        return False
+    names = [op.name for op, _, _ in pickletools.genops(stream.read())
+             if op.name not in _MEMO_OPCODES]
+    if "EMPTY_LIST" not in names:
+        return False
+    last = len(names) - 1 - names[::-1].index("EMPTY_LIST")
+    return names[last + 1:] == ["NONE", "APPEND", "TUPLE", "BUILD", "STOP"]
+
+
+def _stored(stored: Any, key: str) -> np.ndarray | _Pickled | None:
+    """``stored[key]`` of an open ``.npz`` read with ``allow_pickle=False``: the array,
+    ``None`` for a pickled ``None``, :class:`_Pickled` for any other pickled object."""
+    member = f"{key}.npy" if f"{key}.npy" in stored.zip.namelist() else key
+    with stored.zip.open(member) as stream:
+        version = np.lib.format.read_magic(stream)
+        header = (np.lib.format.read_array_header_1_0(stream) if version == (1, 0)
+                  else np.lib.format.read_array_header_2_0(stream))
+    if not header[2].hasobject:
+        return np.asarray(stored[key])
+    with stored.zip.open(member) as stream:
+        return None if _pickled_none(stream) else _Pickled()
 
 
 def qp_problem(name: str, arrays: dict[str, np.ndarray | None], source: str) -> Problem:
@@ -89,6 +154,8 @@ def qp_problem(name: str, arrays: dict[str, np.ndarray | None], source: str) -> 
             raise ValueError("missing key 'q'")
         q = np.asarray(q, dtype=np.float64).reshape(-1)
         n = q.shape[0]
+        if n == 0:
+            raise ValueError("q is empty: a QP needs at least one variable")
         P = arrays.get("P")
         P = np.zeros((n, n)) if P is None else np.asarray(P, dtype=np.float64)
         if P.shape != (n, n):
@@ -102,6 +169,7 @@ def qp_problem(name: str, arrays: dict[str, np.ndarray | None], source: str) -> 
             blocks[matrix] = M
             blocks[vector] = None if v is None else np.asarray(v, dtype=np.float64).reshape(-1)
         _check_convex(P)
+        _check_bounds(arrays)
         problem = Problem(name=name, family=Family.QP, P=P, q=q,
                           A=blocks["A"], b=blocks["b"], G=blocks["G"], h=blocks["h"],
                           lb=arrays.get("lb"), ub=arrays.get("ub"),
@@ -123,19 +191,51 @@ def _check_convex(P: np.ndarray) -> None:
                          f"{smallest:.3g}): the qp family is convex")
 
 
+def _check_bounds(arrays: dict[str, np.ndarray | None]) -> None:
+    """``ValueError`` naming the key and index of a lower bound ``+inf`` or an upper bound
+    ``-inf`` (an infeasible constraint, which no solver would see: both are read as "no
+    bound")."""
+    for key, wrong, relation in (("lb", np.inf, ">="), ("ub", -np.inf, "<=")):
+        bound = arrays.get(key)
+        if bound is None:
+            continue
+        hits = np.flatnonzero(np.asarray(bound, dtype=np.float64).reshape(-1) == wrong)
+        if hits.size:
+            index = int(hits[0])
+            raise ValueError(f"{key}[{index}] = {wrong:+}: x[{index}] {relation} {wrong:+} is "
+                             "infeasible")
+
+
 def read_npz(path: Path) -> Problem:
     """One ``.npz`` as an instance named after the file, its form told by its keys (a qpsolvers
     problem, a saved CasADi conic problem or an LCP: see the module docstring)."""
     try:
         with np.load(path, allow_pickle=False) as stored:
-            arrays = {key: _optional(stored, key) for key in stored.files}
+            raw = {key: _stored(stored, key) for key in stored.files}
     except Exception as error:  # any failure to decode is a bad file
         raise InputError(f"{path}: unreadable, truncated or not an .npz "
                          f"({type(error).__name__}: {error})") from error
+    pickled = sorted(key for key, value in raw.items() if isinstance(value, _Pickled))
+    if pickled:
+        raise InputError(f"{path}: key {pickled[0]!r} is stored as a pickled Python object "
+                         f"(numpy.savez pickles e.g. a scipy.sparse matrix), which is never "
+                         f"loaded: {PICKLED_HELP}")
+    arrays: dict[str, np.ndarray | None] = {}
+    try:
+        for key, value in raw.items():
+            if not isinstance(value, _Pickled):  # none is left (refused above)
+                arrays[key] = _real(key, value)
+    except ValueError as error:
+        raise InputError(f"{path}: {error}") from error
     name, keys = instance_name(path.stem), set(arrays)
     if "F" in keys:
         return _read_lcp(name, arrays, path)
     if is_conic(keys):
+        unknown = sorted(keys - set(CONIC_KEYS))
+        if unknown:
+            raise InputError(f"{path}: keys {', '.join(unknown)} are not CasADi conic names "
+                             f"({' '.join(CONIC_KEYS)}; a file with g and no q is read as "
+                             f"a conic problem)")
         given = {key: value for key, value in arrays.items() if value is not None}
         try:
             qp_arrays = conic_to_qpsolvers(given)
@@ -186,56 +286,107 @@ def read_npz_source(source: Path) -> list[Problem]:
     return [read_npz(path) for path in npz_files(source)]
 
 
-def _items(module: Any) -> Iterator[tuple[str, Any]]:
-    """``(owner name, produced object)`` of every test-set function or class of ``module``
-    (those defined in it, not imported)."""
-    for attribute, value in vars(module).items():
-        if attribute.startswith("_") or getattr(value, "__module__", None) != module.__name__:
+def _takes_no_arguments(value: Any) -> bool:
+    """Whether ``value`` can be called without arguments (``False`` when its signature
+    cannot be read)."""
+    try:
+        parameters = inspect.signature(value).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return all(p.default is not p.empty or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+               for p in parameters)
+
+
+def find_test_sets(module: Any) -> list[tuple[str, Any]]:
+    """``(name, object)`` of the test sets of ``module`` (module docstring): its public
+    generator functions and classes with ``__iter__``, defined in it, that take no arguments.
+    Nothing is called here; every other object is skipped.
+
+    ``vars(module)`` is copied first: running a test set may add entries to it (a warning
+    adds ``__warningregistry__``)."""
+    found: list[tuple[str, Any]] = []
+    for attribute, value in list(vars(module).items()):
+        if attribute.startswith("_"):
             continue
         if inspect.isclass(value):
-            try:
-                instance = value()
-            except TypeError:
-                continue  # needs arguments: not a test set
-            if isinstance(instance, Iterable):
-                yield attribute, instance
-        elif inspect.isfunction(value) and not inspect.signature(value).parameters:
-            yield attribute, value()
+            iterable = any("__iter__" in vars(klass) for klass in value.__mro__
+                           if klass is not object)
+        elif inspect.isfunction(value):
+            iterable = inspect.isgeneratorfunction(value)
+        else:
+            continue
+        if (iterable and getattr(value, "__module__", None) == module.__name__
+                and _takes_no_arguments(value)):
+            found.append((attribute, value))
+    return found
 
 
-def _as_problem(label: str, item: Any, index: int) -> tuple[str, Any]:
-    """``(name, problem object)`` of one yielded item."""
+def _one_line(error: BaseException) -> str:
+    """``Type: message`` of an exception on one line."""
+    return " ".join(f"{type(error).__name__}: {error}".split())
+
+
+def _item_arrays(label: str, item: Any, index: int) -> tuple[str, dict[str, np.ndarray | None]]:
+    """``(name, qpsolvers arrays)`` of one yielded item: a problem or a ``(name, problem)``
+    pair (``ValueError`` for what is not a qpsolvers.Problem or holds non-real data)."""
     if isinstance(item, tuple) and len(item) == 2 and isinstance(item[0], str):
-        return item[0], item[1]
-    return str(getattr(item, "name", "") or f"{label}_{index:03d}"), item
+        item_name, obj = item
+    else:
+        item_name, obj = str(getattr(item, "name", "") or f"{label}_{index:03d}"), item
+    if not hasattr(obj, "P") or not hasattr(obj, "q"):
+        raise ValueError(f"({item_name}): not a qpsolvers.Problem (no P and q)")
+    try:
+        arrays = {key: _real(key, getattr(obj, key, None)) for key in QPSOLVERS_KEYS}
+    except ValueError as error:
+        raise ValueError(f"({item_name}): {error}") from error
+    return item_name, arrays
 
 
 def read_module(name: str) -> list[Problem]:
-    """The problems a module's test sets yield (see the module docstring).
+    """The problems a module's test sets yield (:func:`find_test_sets`, module docstring).
 
-    :class:`InputError` when the module cannot be imported, yields nothing, or yields an
-    object without qpsolvers' ``P`` and ``q``.
+    :class:`InputError` when the module cannot be imported, has no test set, a test set
+    raises, yields nothing, or yields an object that is not a convex QP in qpsolvers' form.
     """
     try:
         module = importlib.import_module(name)
     except Exception as error:  # a user module may raise anything on import
-        raise InputError(f"--module {name}: cannot import it ({type(error).__name__}: "
-                         f"{error})") from error
+        raise InputError(f"--module {name}: cannot import it ({_one_line(error)})") from error
+    sets = find_test_sets(module)
+    if not sets:
+        raise InputError(f"--module {name}: defines no test set (a public generator function "
+                         "or class with __iter__, defined in the module and callable without "
+                         "arguments, yielding qpsolvers.Problem objects; plain functions are "
+                         "not called)")
     problems: list[Problem] = []
-    for label, produced in _items(module):
-        if not isinstance(produced, Iterable) or isinstance(produced, str | bytes | dict):
-            continue
-        for index, item in enumerate(produced):
-            item_name, obj = _as_problem(label, item, index)
-            source = f"--module {name}: {label} item {index} ({item_name})"
-            if not hasattr(obj, "P") or not hasattr(obj, "q"):
-                raise InputError(f"{source}: not a qpsolvers.Problem (no P and q)")
-            arrays = {key: _optional({key: getattr(obj, key, None)}, key)
-                      for key in QPSOLVERS_KEYS}
+    for label, test_set in sets:
+        where = f"--module {name}: {label}"
+        try:
+            iterator = iter(test_set())
+        except Exception as error:  # user code
+            raise InputError(f"{where}: raised {_one_line(error)}") from error
+        index = 0
+        while True:
+            try:
+                item = next(iterator)
+            except StopIteration:
+                break
+            except Exception as error:  # user code
+                raise InputError(f"{where}: raised {_one_line(error)} while yielding item "
+                                 f"{index}") from error
+            try:
+                item_name, arrays = _item_arrays(label, item, index)
+            except ValueError as error:
+                raise InputError(f"{where} item {index} {error}") from error
+            except Exception as error:  # a user property
+                raise InputError(f"{where} item {index}: reading it raised "
+                                 f"{_one_line(error)}") from error
+            source = f"{where} item {index} ({item_name})"
             problems.append(qp_problem(instance_name(item_name), arrays, source))
+            index += 1
     if not problems:
-        raise InputError(f"--module {name}: defines no function or class yielding "
-                         "qpsolvers.Problem objects")
+        raise InputError(f"--module {name}: its test sets ({', '.join(l for l, _ in sets)}) "
+                         "yield no problem")
     return problems
 
 
