@@ -195,14 +195,17 @@ def _add_import_export(problems_sub: Any) -> None:
         description="Read .npz files with qpsolvers' Problem keys (P q G h A b lb ub), "
                     "CasADi conic names (h g a lba uba lbx ubx, as written by "
                     "c3bench.problems.conic.save_conic) or an LCP's F and q, or a "
-                    "module whose functions or classes yield qpsolvers.Problem objects, and "
+                    "module whose test sets (generator functions, or classes with __iter__, "
+                    "callable without arguments) yield qpsolvers.Problem objects, and "
                     "write them as instances of the qp family (lcp_general for an LCP; with "
                     "a manifest) that `c3bench run --instances DIR` runs.")
     imports.add_argument("source", nargs="?", default=None, metavar="SRC",
                          help="an .npz file or a directory of them (searched recursively)")
     imports.add_argument("--module", default=None, metavar="MODULE",
-                         help="instead of SRC: an importable Python module defining a "
-                              "function or class yielding qpsolvers.Problem objects")
+                         help="instead of SRC: an importable Python module defining test "
+                              "sets: generator functions or classes with __iter__, callable "
+                              "without arguments, yielding qpsolvers.Problem objects (nothing "
+                              "else in the module is called)")
     imports.add_argument("--out", required=True, metavar="DIR",
                          help="instance directory to write (new, empty, or one written by "
                               "import or generate, which is replaced as a whole)")
