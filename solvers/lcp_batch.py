@@ -3,8 +3,10 @@
 :func:`lemke_batch` solves ``k`` problems ``LCP(M_i, q_i)`` (find ``z >= 0`` with
 ``w = M z + q >= 0``, ``z^T w = 0``) in one compiled call. It is the scalar
 :func:`c3bench.solvers.lcp.lemke`, operation for operation: the tableau ``w - M z - e z0 = q``
-with covering vector ``e = 1``, the same pivots, the same ratio-test tie rule (the artificial
-variable ``z0`` first, then the lowest row) and the same acceptance check of a terminal basis
+with covering vector ``e = 1``, the same pivots, the same lexicographic ratio test (ties of
+the minimum ratio within Harris's tolerance; the artificial variable ``z0`` if it ties, else
+the lexicographic minimum of the tied rows of the basis inverse over the entering column;
+Cottle, Pang and Stone 1992, sections 4.4 and 4.9) and the same acceptance check of a terminal basis
 (relative natural residual ``||min(z, M z + q)||_inf / max(1, ||M z||_inf, ||q||_inf) <=
 check_tol``, which bounds ``[-z]_+`` and ``[-w]_+``; issue 9: a terminal basis that fails it
 is reported as not a solution, never as solved). On the same data it returns the same ``z``.
@@ -25,7 +27,13 @@ C. E. Lemke, "Bimatrix equilibrium points and mathematical programming", Managem
 11(7), 681-689, 1965.
 
 R. W. Cottle, J.-S. Pang and R. E. Stone, *The Linear Complementarity Problem*, Academic
-Press, 1992 (section 4.4, Lemke's method).
+Press, 1992 (sections 4.4 and 4.9, Lemke's method and the lexicographic ratio test).
+
+K. G. Murty, *Linear Complementarity, Linear and Nonlinear Programming*, Heldermann, 1988
+(chapter 2).
+
+P. M. J. Harris, "Pivot selection methods of the Devex LP code", Mathematical Programming
+5, 1-28, 1973 (the tolerance of the ratio-test ties).
 """
 
 from __future__ import annotations
@@ -122,35 +130,64 @@ def _pivot(tableau: np.ndarray, row: int, column: int) -> None:  # pragma: no co
 
 
 @njit(cache=True)
+def _ties(tableau: np.ndarray, source: int, entering: int, tied: np.ndarray,
+          tol: float) -> int:  # pragma: no cover - compiled
+    """Narrow ``tied`` (a row mask) to the rows that tie for the minimum of ``b_i / d_i``
+    (``b`` column ``source``, ``d`` column ``entering``): ``b_i / d_i <= min_k (b_k + tol
+    max(1, |b_k|)) / d_k`` over the tied rows (the scalar's ``_ties``); returns how many
+    remain, -1 on a NaN."""
+    m = tableau.shape[0]
+    threshold = math.inf
+    for i in range(m):
+        if tied[i]:
+            b = tableau[i, source]
+            d = tableau[i, entering]
+            bound = (b + tol * max(1.0, abs(b))) / d
+            if math.isnan(bound):
+                return -1
+            threshold = min(threshold, bound)
+    count = 0
+    for i in range(m):
+        if tied[i]:
+            if tableau[i, source] / tableau[i, entering] <= threshold:
+                count += 1
+            else:
+                tied[i] = False
+    return count
+
+
+@njit(cache=True)
 def _ratio_row(tableau: np.ndarray, entering: int, basis: np.ndarray, artificial: int,
-               tol: float, ratios: np.ndarray) -> int:  # pragma: no cover - compiled
-    """Leaving row of the minimum ratio test: -1 on a secondary ray, -2 when no ratio ties
-    the minimum (non-finite entries); ties prefer the artificial variable, then the lowest
-    row."""
+               tol: float, tied: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Leaving row of the lexicographic minimum ratio test (the scalar's ``_leaving_row``):
+    -1 on a secondary ray, -2 on NaN entries; the ties of the minimum ratio, the artificial
+    variable's row if among them, else the ties narrowed by the columns ``m - 1, ..., 0`` of
+    the basis inverse, the lowest row left."""
     m = tableau.shape[0]
     last = tableau.shape[1] - 1
-    best = math.inf
     positive = False
     for i in range(m):
-        ratios[i] = math.inf
-        if tableau[i, entering] > tol:
+        tied[i] = tableau[i, entering] > tol
+        if tied[i]:
             positive = True
-            ratios[i] = tableau[i, last] / tableau[i, entering]
     if not positive:
         return -1
+    count = _ties(tableau, last, entering, tied, tol)
+    if count < 0:
+        return -2
     for i in range(m):
-        if math.isnan(ratios[i]):
+        if tied[i] and basis[i] == artificial:
+            return i
+    for source in range(m - 1, -1, -1):
+        if count == 1:
+            break
+        count = _ties(tableau, source, entering, tied, tol)
+        if count < 0:
             return -2
-        best = min(best, ratios[i])
-    threshold = best + tol * max(1.0, abs(best))
-    row = -2
     for i in range(m):
-        if ratios[i] <= threshold:
-            if row < 0:
-                row = i
-            if basis[i] == artificial:
-                return i
-    return row
+        if tied[i]:
+            return i
+    return -2
 
 
 @njit(cache=True)
@@ -191,7 +228,7 @@ def _lemke_one(M: np.ndarray, q: np.ndarray, limit: int, tol: float, check_tol: 
     artificial = 2 * m
     tableau = np.zeros((m, 2 * m + 2))
     basis = np.empty(m, dtype=np.int64)
-    ratios = np.empty(m)
+    tied = np.empty(m, dtype=np.bool_)
     for i in range(m):
         tableau[i, i] = 1.0
         for k in range(m):
@@ -205,7 +242,7 @@ def _lemke_one(M: np.ndarray, q: np.ndarray, limit: int, tol: float, check_tol: 
     basis[row] = artificial
     for count in range(1, limit + 1):
         entering = leaving + m if leaving < m else leaving - m
-        row = _ratio_row(tableau, entering, basis, artificial, tol, ratios)
+        row = _ratio_row(tableau, entering, basis, artificial, tol, tied)
         if row == -1:
             z[:] = np.nan
             w[:] = np.nan

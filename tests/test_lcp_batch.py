@@ -24,6 +24,7 @@ from c3bench.solvers.lcp_batch import (
     observation_arrays,
     prediction_weights,
 )
+from c3bench.solvers.residuals import relative_natural_residual
 
 SCALAR_STATUS = {
     "solved": LemkeStatus.SOLVED,
@@ -126,19 +127,139 @@ def test_degenerate_lcps_match_scalar() -> None:
 def test_lcps_without_solution_are_never_solved() -> None:
     """``F = [[0]], q = [-1]`` (``w = -1`` whatever ``z``) and ``[[2, -2], [-2, 2]]``,
     ``q = [-3, 0]`` (``w_2 >= 0`` forces ``w_1 < 0``; tests/test_lcp_backends.py): a secondary
-    ray, and with a loose tie tolerance (0.9) a terminal basis with ``w_2 = -3`` that the check
-    refuses, exactly as the scalar does."""
+    ray, and with a loose tie tolerance (1.5, which lets ``z0`` tie and leave at the first
+    ratio test) a terminal basis with ``w_2 = -3`` that the check refuses, exactly as the
+    scalar does."""
     unsolvable = [(np.array([[0.0]]), np.array([-1.0])),
                   (np.array([[2.0, -2.0], [-2.0, 2.0]]), np.array([-3.0, 0.0])),
                   (-np.eye(2), np.array([-1.0, 2.0]))]
     for M, q in unsolvable:
-        for tol in (1e-12, 0.9):
+        for tol in (1e-12, 1.5):
             _assert_matches_scalar(M[None], q[None], tol=tol)
             result = lemke_batch(M[None], q[None], tol=tol)
             assert not result.found[0] and not lemke(M, q, tol=tol).found
-    loose = lemke_batch(unsolvable[1][0][None], unsolvable[1][1][None], tol=0.9)
+    loose = lemke_batch(unsolvable[1][0][None], unsolvable[1][1][None], tol=1.5)
     assert loose.status[0] == LemkeStatus.NOT_A_SOLUTION
     assert np.min(loose.w[0]) < -1.0
+
+
+# --- degeneracy: the lexicographic ratio test ----------------------------------------------------
+# A feasible LCP with a symmetric PSD M of rank 3 and a pair z*_4 = w*_4 = 0 (case 1061 of 4000 of
+# an audit's planted-feasible degenerate problems). At the third pivot z0 and w_4 tie for the
+# minimum ratio in exact arithmetic; round-off in the small entries (2.5e-4 / 1.75e-4) made the
+# ratios 1.4284038531347765 and 1.428403853136336 (relative gap 1.1e-12, outside a 1e-12 window
+# on the ratios), w_4 left and z_4 entered with no positive entry: a secondary ray on a
+# feasible LCP. The planted solution, as its w = M z + q (unique for a symmetric PSD M).
+DEGENERATE_M = np.array([
+    [6.478470459684421, -1.8992629661416072, 2.45143404821316, 0.7208072040803535,
+     -1.7735529635665723],
+    [-1.8992629661416072, 0.9357871647301729, -0.6874152688436439, -0.08021332464218114,
+     -0.6793117354520699],
+    [2.45143404821316, -0.6874152688436439, 0.9394659653817706, 0.24797641625142167,
+     -0.7918661812054623],
+    [0.7208072040803535, -0.08021332464218114, 0.24797641625142167, 0.26214771272484727,
+     -0.5283540926982268],
+    [-1.7735529635665723, -0.6793117354520699, -0.7918661812054623, -0.5283540926982268,
+     4.331846803943269]])
+DEGENERATE_Q = np.array([4.6452119761092545, -0.373485516028428, 1.2469902030684086,
+                         0.48596470657330787, -2.6229464545757804])
+
+
+def test_degenerate_psd_example_is_solved() -> None:
+    M, q = DEGENERATE_M, DEGENERATE_Q
+    assert np.linalg.matrix_rank(M) == 3
+    _assert_matches_scalar(M[None], q[None])
+    reference = lemke(M, q)
+    assert reference.found and reference.z is not None, reference.status
+    assert relative_natural_residual(M, q, reference.z) <= 1e-12
+    result = lemke_batch(M[None], q[None])
+    assert result.status[0] == LemkeStatus.SOLVED
+    assert np.all(result.z[0] >= 0) and np.all(result.w[0] >= -1e-12)
+    planted_z = np.array([0.0, 2.34437672, 1.42840385, 0.0, 1.23425735])
+    np.testing.assert_allclose(result.w[0], M @ planted_z + q, atol=1e-7)
+
+
+def _planted_degenerate_lcps(rng: np.random.Generator, k: int, m: int, kind: str
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``k`` feasible degenerate LCPs ``q = w* - M z*`` with one or two pairs
+    ``z*_i = w*_i = 0``: ``kind`` "psd" (``G G^T``, ``G`` m x (m - 2), rank-deficient),
+    "p" (``G G^T + I/10`` plus a skew part: a P-matrix), "psd-int" and "p-int" (the same with
+    small integers, so that ties in the ratio test are exact)."""
+    integer = kind.endswith("-int")
+
+    def draw(*shape: int) -> np.ndarray:
+        if integer:
+            return rng.integers(-2, 3, size=shape).astype(float)
+        return rng.standard_normal(shape)
+
+    if kind.startswith("psd"):
+        G = draw(k, m, max(1, m - 2))
+        M = G @ np.swapaxes(G, 1, 2)
+    else:
+        G, S = draw(k, m, m), draw(k, m, m)
+        M = G @ np.swapaxes(G, 1, 2) + (1.0 if integer else 0.1) * np.eye(m)
+        M = M + S - np.swapaxes(S, 1, 2)
+    active = rng.random((k, m)) < 0.5
+    low, high = (1, 4) if integer else (0.1, 3.0)
+    values = rng.integers(low, high, (2, k, m)) if integer else rng.uniform(low, high, (2, k, m))
+    z_star = np.where(active, values[0], 0.0)
+    w_star = np.where(active, 0.0, values[1])
+    for i in range(k):
+        both_zero = rng.choice(m, size=min(m, int(rng.integers(1, 3))), replace=False)
+        z_star[i, both_zero] = 0.0
+        w_star[i, both_zero] = 0.0
+    q = w_star - (M @ z_star[..., None])[..., 0]
+    return M, q, w_star
+
+
+@pytest.mark.parametrize("kind", ["psd", "p", "psd-int", "p-int"])
+def test_degenerate_planted_lcps_are_solved(kind: str) -> None:
+    """Feasible degenerate PSD and P-matrix LCPs (pairs with ``z* = w* = 0``, rank-deficient
+    PSD ``M``, exact ties with integer data): Lemke with the lexicographic ratio test solves
+    every one (Cottle, Pang and Stone 1992, section 4.4), and the batch equals the scalar.
+    ``w = M z + q`` is the planted ``w*`` (unique for P-matrices and symmetric PSD ``M``)."""
+    rng = np.random.default_rng(["psd", "p", "psd-int", "p-int"].index(kind))
+    for m in range(2, 10):
+        M, q, w_star = _planted_degenerate_lcps(rng, 30, m, kind)
+        _assert_matches_scalar(M, q)
+        result = lemke_batch(M, q)
+        assert np.all(result.found), [lemke(M[i], q[i]).status for i in
+                                      np.flatnonzero(~result.found)]
+        for i in range(q.shape[0]):
+            assert relative_natural_residual(M[i], q[i], result.z[i]) <= 1e-10
+        scale = np.maximum(1.0, np.abs(q).max(axis=1))
+        assert np.all(np.abs(result.w - w_star).max(axis=1) <= 1e-8 * scale)
+
+
+def test_infeasible_lcps_end_in_a_ray() -> None:
+    """``M`` symmetric PSD with ``M n = 0`` for an ``n > 0`` and ``n^T q = -1``: ``n^T w =
+    -1 < 0`` for every ``z``, so no ``w >= 0`` exists; Lemke (copositive-plus ``M``) ends in a
+    secondary ray, reported as not found, in the batch as in the scalar."""
+    rng = np.random.default_rng(21)
+    for m in range(2, 9):
+        n = rng.uniform(0.5, 2.0, (40, m))
+        P = np.eye(m) - n[:, :, None] * n[:, None, :] / (n * n).sum(axis=1)[:, None, None]
+        G = rng.standard_normal((40, m, m))
+        M = P @ G @ np.swapaxes(G, 1, 2) @ P
+        q = rng.standard_normal((40, m))
+        q -= n * (((n * q).sum(axis=1) + 1.0) / (n * n).sum(axis=1))[:, None]
+        _assert_matches_scalar(M, q)
+        result = lemke_batch(M, q)
+        assert not np.any(result.found)
+        assert np.all(result.status == LemkeStatus.SECONDARY_RAY)
+        assert np.all(np.isnan(result.z))
+
+
+def test_nan_in_the_ratio_test_is_not_a_solution() -> None:
+    """A NaN reaching the ratio test (here from ``q``) leaves no comparison: "check failed"
+    in the scalar (which used to raise an IndexError there), ``NOT_A_SOLUTION`` with a NaN
+    ``z`` in the batch."""
+    M, q = np.array([[1.0, 2.0], [3.0, 4.0]]), np.array([np.nan, -1.0])
+    reference = lemke(M, q)
+    assert not reference.found and reference.z is None
+    assert reference.status.startswith("check failed: non-finite"), reference.status
+    _assert_matches_scalar(M[None], q[None])
+    assert lemke_batch(M[None], q[None]).status[0] == LemkeStatus.NOT_A_SOLUTION
 
 
 def test_never_solved_with_negative_w_on_random_lcps() -> None:
