@@ -105,6 +105,16 @@ def _finite_or_nan(value: Any) -> float:
         return math.nan
 
 
+def invalid_times(setup_time: float, solve_time: float) -> str:
+    """Why the laps a backend reported cannot be times (``""`` when they can): each must be
+    a finite number ``>= 0`` (the timing contract, :mod:`c3bench.solvers.timing`). A row with
+    such laps is the backend's failure, not a fast or free success."""
+    laps = {"setup_time": setup_time, "solve_time": solve_time}
+    bad = [f"{name}={value!r}" for name, value in laps.items()
+           if not (math.isfinite(value) and value >= 0.0)]
+    return f"the backend reported an invalid time: {', '.join(bad)}" if bad else ""
+
+
 def fill_row(row: dict[str, Any], problem: Problem, result: Result) -> dict[str, Any]:
     """Put a :class:`Result` and its residuals (the one residual module) into ``row``."""
     row.update({
@@ -114,6 +124,10 @@ def fill_row(row: dict[str, Any], problem: Problem, result: Result) -> dict[str,
         "total_time": _finite_or_nan(result.total_time),
         "iterations": None if result.iterations is None else int(result.iterations),
     })
+    invalid = invalid_times(row["setup_time"], row["solve_time"])
+    if result.found and invalid:
+        row.update({"found": False, "failure": str(Failure.ERROR),
+                    "status": f"{invalid} (the answer is not judged)"})
     x = None if result.x is None else np.asarray(result.x, dtype=float)
     if x is not None and x.shape == (problem.n,) and np.all(np.isfinite(x)):
         figures = residuals(problem, x, result.y, result.z, result.z_box)
