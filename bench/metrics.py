@@ -10,8 +10,8 @@ demand 1e-12 relative accuracy; this is OSQP's mixed test with ``eps_abs = eps_r
 
 * every family: relative primal residual ``<= eps`` and complementarity violation
   ``max |min(x_i, x_j)| <= eps`` (0 for families without pairs); for ``lcp`` the
-  complementarity violation is the relative natural residual ``||min(lam, w)|| / max(1,
-  ||P lam||, ||q||)`` of ``0 <= lam perp w = P lam + q >= 0``, so success also needs
+  complementarity violation is the natural residual relative to the data,
+  ``||min(lam, w)|| / max(1, ||q||)`` of ``0 <= lam perp w = P lam + q >= 0``, so success also needs
   ``lam >= -eps`` and ``w >= -eps`` (relatively); ``lcp_general`` is judged by the same
   natural residual of ``0 <= lam perp F lam + q >= 0`` (``F`` stored as is) and its primal
   residual (``[-lam]_+``, ``[-w]_+``) only: an LCP has no objective (the family stores 0)

@@ -175,7 +175,7 @@ def precision_accuracy(frame: pd.DataFrame, paths: store.SuitePaths) -> list[bas
     """Primal residual (and projection violations) in float32 vs float64 per backend."""
     figure = base.Figure(
         "precision_accuracy", "float32 vs float64 accuracy",
-        "Left: relative primal residual ||Ax - b||_inf / max(1, ||Ax||, ||b||) of each "
+        "Left: relative primal residual ||Ax - b||_inf / max(1, ||b||) of each "
         "backend that runs in both precisions (y: dimensionless, log scale); right: "
         "constraint violation before and after the final projection step (y: "
         "||Ax - b||_inf, log scale), float32 (light) and float64 (dark); cold start, all "

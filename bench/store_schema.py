@@ -40,7 +40,8 @@ SCHEMA: tuple[Column, ...] = (
            "provenance and its arrays rounded to ~1e-9 of each array's largest entry); a "
            "cell of a changed instance is stale and rerun, one regenerated elsewhere with "
            "last-bit noise is not."),
-    Column("family", "str", "Subproblem family: c3plus_qp, c3_qp, projection, mpcc, lcp, lcp_general, qp (imported)."),
+    Column("family", "str", "Subproblem family: c3plus_qp, c3_qp, projection, mpcc, lcp, "
+           "lcp_general, qp (imported)."),
     Column("solver", "str", "Registry name of the backend."),
     Column("solver_version", "str", "Version of the backend's package ('-' for our own code)."),
     Column("settings", "str", "Settings profile: default, low_accuracy, mid_accuracy, "
@@ -90,8 +91,9 @@ SCHEMA: tuple[Column, ...] = (
     Column("dual_residual", "float64", "max(||Px + q + A^T y + G^T z + z_box||_inf, largest "
            "wrong-signed z or z_box) (NaN without duals)."),
     Column("duality_gap", "float64", "|x^T P x + q^T x + b^T y + h^T z + bound terms|."),
-    Column("primal_residual_relative", "float64", "primal_residual / max(1, size of its terms: "
-           "||Ax||, ||b||, ||Gx||, ||h||, bounds) (solvers.residuals); judged for success."),
+    Column("primal_residual_relative", "float64", "primal_residual / max(1, size of the data: "
+           "||b||, ||h||, finite bounds; never the answer's) (solvers.residuals); judged for "
+           "success."),
     Column("dual_residual_relative", "float64", "dual_residual / max(1, ||Px||, ||q||, "
            "||A^T y||, ||G^T z||, ||z_box||); judged for success."),
     Column("duality_gap_relative", "float64", "duality_gap / max(1, largest term of the gap); "
