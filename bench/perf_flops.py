@@ -17,6 +17,7 @@ per sample:
       Bv^T (S [A Bv]) + H_v           2 nv nx ny + nv ny
       Q_vv^-1                         2 nv^3
       G_v [Q_vx  Bv^T]                4 nv^2 nx
+      K += G_v (Q_vv K + Q_vx)        4 nv^2 nx + 2 nv nx
       A_cl = A + Bv K                 2 nx^2 nv + nx^2
       S = A^T S A + H_xx + Q_vx^T K   2 nx^3 + 2 nx^2 nv + 2 nx^2
       symmetrise                      2 nx^2
@@ -35,7 +36,8 @@ per sample:
 * **Dual update**, per iteration: ``z - delta`` and ``w + (z - delta)`` (``2 T ns``).
 
 For the planar cube (``nx = 10``, ``nlam = 6``, ``nu = 2``, ``T = 7``, 10 iterations with 10
-rho values) this is about 1.29 MFLOP per sample, 89 % of it in the factorisations.
+rho values) this is about 1.47 MFLOP per sample, 90 % of it in the factorisations (1.29 and
+89 % before the numpy code refined its gains, :mod:`solvers.riccati`).
 
 **Matmul rate** (:func:`matmul_rate`): the best of ``repeats`` timed ``numpy.matmul`` calls
 of two ``size x size`` matrices (``2 size^3`` flops; 256 fits in a core's L2 cache),
@@ -91,10 +93,11 @@ class AdmmFlops:
 
 
 def riccati_step_flops(nx: int, nv: int) -> int:
-    """Flops of one time step of :func:`solvers.fast.factorize`'s backward loop, one sample."""
+    """Flops of one time step of :func:`solvers.fast.factorize`'s backward loop, one sample
+    (with the gain's refinement ``K += G_v (Q_vv K + Q_vx)``: ``4 nv^2 nx + 2 nv nx``)."""
     ny = nx + nv
     return (2 * nx * nx * (ny + 1) + 2 * nv * nx * ny + nv * ny + 2 * nv ** 3
-            + 4 * nv * nv * nx + 2 * nx * nx * nv + nx * nx
+            + 4 * nv * nv * nx + 4 * nv * nv * nx + 2 * nv * nx + 2 * nx * nx * nv + nx * nx
             + 2 * nx ** 3 + 2 * nx * nx * nv + 2 * nx * nx + 2 * nx * nx)
 
 
