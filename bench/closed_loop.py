@@ -1,6 +1,10 @@
 """Closed loop: a controller replans every ``dt`` from the measured MuJoCo state and drives the
 true plant (``l = 0.30``) with its first input held for ``dt`` (zero-order hold).
 
+The plant runs at its own step (1 ms); after every plant step a :class:`ContactProbe`
+measures the ball-cube signed distance and the ball's height, so that contact between two
+recorded states (one per control step) is seen (:class:`PlantContact`).
+
 Outcome metrics (docs/closed_loop.md): cube angle error at the end, control-step wall
 time (median, p95; LCS build and solve apart), NaN / fallback counts, the physical metrics and
 the success rule built on them (:mod:`bench.closed_loop_metrics`: peak angle, contact times,
@@ -19,7 +23,8 @@ Failure-mode rules (thresholds in :class:`FailureRules`), checked in this order:
 1. **fast sliding past the edge**: the ball rises above the cube's top face (in the cube frame)
    while its speed exceeds ``fast_speed``, or the pivot slips by more than ``pivot_slip``.
 3. **whack and lose contact**: the angle peaked above ``whack_fraction * theta*``, the ball was
-   farther than ``contact_gap`` from the cube for at least ``lost_time`` after the peak, and the
+   farther than ``contact_gap`` from the cube for at least ``lost_time`` in all after the peak
+   (counted at every plant step when ``simulate`` measured it: :class:`ContactProbe`), and the
    final angle is at least ``fall_back`` below the peak.
 5. **unlabelled**: none of the above (reported as such, never forced into a mode).
 
@@ -29,6 +34,7 @@ their QP backends) live in :mod:`bench.closed_loop_policy` and are re-exported h
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -41,6 +47,7 @@ from c3bench.bench.closed_loop_checks import check_backends, control_steps
 from c3bench.bench.closed_loop_labels import physical_label
 from c3bench.bench.closed_loop_metrics import (
     PhysicalMetrics,
+    PlantContact,
     RunSignals,
     SuccessRules,
     physical_metrics,
@@ -72,13 +79,15 @@ from c3bench.solvers.timing import single_thread_blas
 
 __all__ = [
     "CONTROLLERS", "FAILURE_MODES", "FAST_CONTROLLERS", "ROBUST_CONTROLLERS",
-    "ClosedLoopOutcome", "ContactModelOption", "ControllerSpec", "FailureRules",
-    "PhysicalMetrics", "Policy",
-    "StepRecord", "SuccessRules", "Trajectory", "cube_geometry", "label_failure_mode",
-    "make_policy", "pd_tracking_law", "planned_ball_state", "records_frame", "render_run",
-    "run_closed_loop", "run_signals", "run_summary", "simulate", "step_backends",
-    "step_failures", "summarise", "write_run",
+    "ClosedLoopOutcome", "ContactModelOption", "ContactProbe", "ControllerSpec", "FailureRules",
+    "PhysicalMetrics", "PlantContact", "Policy", "StepRecord", "SuccessRules", "Trajectory",
+    "advance", "cube_geometry", "label_failure_mode", "make_policy", "pd_tracking_law",
+    "planned_ball_state", "records_frame", "render_run", "run_closed_loop", "run_signals",
+    "run_summary", "simulate", "step_backends", "step_failures", "summarise", "write_run",
 ]
+
+GAP_RANGE = 10.0
+"""``distmax`` of ``mj_geomDistance`` (m): signed distances are exact below it."""
 
 FAILURE_MODES: dict[int, str] = {
     0: "success",
@@ -108,17 +117,25 @@ class FailureRules:
 
 @dataclass
 class Trajectory:
-    """What the plant did: times (N), states (N x nx), inputs (N-1 x nu) and ball-cube gaps (N)."""
+    """What the plant did: times (N), states (N x nx), inputs (N-1 x nu) and ball-cube gaps (N)
+    at the recorded states (one per control step), and ``plant``: the contact measured at
+    every plant step, per control period (``None`` when not measured)."""
 
     times: np.ndarray
     states: np.ndarray
     inputs: np.ndarray
     ball_gap: np.ndarray
+    plant: PlantContact | None = None
 
 
-def cube_geometry(scene: Scene, x: np.ndarray) -> dict[str, Any]:
-    """Far bottom corner, ball position in the cube frame and ball-cube distance at ``x``."""
-    data = mujoco.MjData(scene.model)
+def cube_geometry(scene: Scene, x: np.ndarray, data: mujoco.MjData | None = None
+                  ) -> dict[str, Any]:
+    """Far bottom corner, ball position in the cube frame and ball-cube distance at ``x``.
+
+    ``data``: a scratch ``MjData`` of ``scene.model`` to work in (its positions are
+    overwritten); a new one is made per call without it (about 0.4 ms, most of the cost).
+    """
+    data = mujoco.MjData(scene.model) if data is None else data
     data.qpos[:] = x[: scene.nq]
     mujoco.mj_kinematics(scene.model, data)
     corners = data.site_xpos[scene.corner_sites]
@@ -128,8 +145,118 @@ def cube_geometry(scene: Scene, x: np.ndarray) -> dict[str, Any]:
     ball_world = data.xpos[scene.body("ball")]
     ball_local = rotation.T @ (ball_world - data.xpos[cube])
     gap = mujoco.mj_geomDistance(scene.model, data, scene.geom("ball"), scene.geom("cube"),
-                                 10.0, None)
+                                 GAP_RANGE, None)
     return {"far_corner": far, "ball_local": ball_local, "ball_gap": float(gap)}
+
+
+class ContactProbe:
+    """Running contact statistics of a control period, updated after every plant step.
+
+    After each plant step :meth:`observe` puts the plant's positions into a scratch
+    ``MjData``, runs ``mj_kinematics`` and takes the ball-cube signed distance with
+    ``mj_geomDistance``, the same function as :func:`cube_geometry` (1-6 us per plant step
+    with the bookkeeping on the 2-core VM, against about 4 us for the plant step), and
+    keeps, per period, the quantities of
+    :class:`~c3bench.bench.closed_loop_metrics.PlantContact`. Planar scene: the impact speed
+    is the ball's velocity minus that of the cube's material point at the ball's centre,
+    ``(v_x + omega r_z, v_z - omega r_x)`` with ``r`` from the cube centre to the ball's
+    (theta about +y).
+    """
+
+    def __init__(self, scene: Scene, contact_gap: float, away_gap: float) -> None:
+        self.scene = scene
+        self.model = scene.model
+        self.data = mujoco.MjData(scene.model)
+        self.probe_qpos = self.data.qpos
+        self.qpos, self.qvel = self.probe_qpos, self.data.qvel  # until :meth:`watch`
+        self.ball, self.cube = scene.geom("ball"), scene.geom("cube")
+        self.height_index = int(scene.ball_position_indices[-1])
+        self.height_offset = scene.config.scene.ball_radius + scene.config.scene.table_height
+        self.step = float(scene.model.opt.timestep)
+        self.contact_gap, self.away_gap = float(contact_gap), float(away_gap)
+        self.periods: list[tuple[float, float, int, int, float, float]] = []
+        self.start = 0.0
+        self.begin(0.0)
+
+    def begin(self, start: float) -> None:
+        """Start a control period at time ``start`` (s)."""
+        self.start = start
+        self.min_gap = self.min_height = math.inf
+        self.touching = self.away = 0
+        self.touch_time = self.touch_speed = math.nan
+
+    def watch(self, data: mujoco.MjData) -> None:
+        """Observe the plant whose ``MjData`` is ``data`` (its arrays' views are kept)."""
+        self.qpos, self.qvel = data.qpos, data.qvel
+
+    def observe(self, index: int) -> None:
+        """Take the watched plant's state after the period's ``index``-th plant step (from
+        1)."""
+        qpos = self.qpos
+        self.probe_qpos[:] = qpos
+        mujoco.mj_kinematics(self.model, self.data)
+        gap = mujoco.mj_geomDistance(self.model, self.data, self.ball, self.cube, GAP_RANGE,
+                                     None)
+        if gap < self.min_gap:
+            self.min_gap = gap
+        height = float(qpos[self.height_index]) - self.height_offset
+        if height < self.min_height:
+            self.min_height = height
+        if gap <= self.contact_gap:
+            self.touching += 1
+            if self.touching == 1:
+                self.touch_time = self.start + index * self.step
+                self.touch_speed = self._relative_speed(qpos, self.qvel)
+        if gap > self.away_gap:
+            self.away += 1
+
+    @staticmethod
+    def _relative_speed(qpos: np.ndarray, qvel: np.ndarray) -> float:
+        r_x, r_z = qpos[3] - qpos[0], qpos[4] - qpos[1]
+        omega = qvel[2]
+        return math.hypot(qvel[3] - qvel[0] - omega * r_z, qvel[4] - qvel[1] + omega * r_x)
+
+    def end(self) -> None:
+        """Close the period."""
+        self.periods.append((self.min_gap, self.min_height, self.touching, self.away,
+                             self.touch_time, self.touch_speed))
+
+    def record(self) -> PlantContact:
+        """The closed periods as a :class:`PlantContact`."""
+        table = np.array(self.periods, dtype=float).reshape(len(self.periods), 6)
+        return PlantContact(
+            plant_step=self.step, contact_gap=self.contact_gap, away_gap=self.away_gap,
+            min_gap=table[:, 0], min_height=table[:, 1], contact_time=table[:, 2] * self.step,
+            away_time=table[:, 3] * self.step, touch_time=table[:, 4],
+            touch_speed=table[:, 5])
+
+
+def advance(plant: Plant, u: np.ndarray, duration: float, probe: ContactProbe,
+            law: Callable[[np.ndarray, float, np.ndarray], np.ndarray] | None = None
+            ) -> np.ndarray:
+    """Step ``plant`` for ``duration`` s, as :meth:`Plant.step` (``u`` held) or, with ``law``,
+    :meth:`Plant.step_with` (``law(x, s, u)`` every plant step, clipped to the force limit)
+    do, with ``probe`` observing every plant step; return the state. The same MuJoCo calls
+    in the same order as those methods, so the same states bit for bit."""
+    scene = plant.scene
+    model, data = scene.model, plant.data
+    step = float(model.opt.timestep)
+    count = round(duration / step)
+    if not (math.isfinite(duration) and duration > 0) or \
+            abs(count * step - duration) > 1e-9 * max(1.0, duration):
+        raise ValueError(f"duration {duration} is not a positive multiple of the plant step "
+                         f"{step}")
+    limit = scene.config.scene.force_limit
+    probe.watch(data)
+    if law is None:
+        data.ctrl[:] = scene.check_input(u)
+    for k in range(count):
+        if law is not None:
+            command = scene.check_input(law(plant.state(), k * step, u))
+            data.ctrl[:] = np.clip(command, -limit, limit)
+        mujoco.mj_step(model, data)
+        probe.observe(k + 1)
+    return plant.state()
 
 
 def label_failure_mode(trajectory: Trajectory, scene: Scene, target_angle: float,
@@ -139,7 +266,8 @@ def label_failure_mode(trajectory: Trajectory, scene: Scene, target_angle: float
     rules = rules or FailureRules()
     states = trajectory.states
     angles = np.array([scene.cube_angle(x) for x in states])
-    geometry = [cube_geometry(scene, x) for x in states]
+    scratch = mujoco.MjData(scene.model)
+    geometry = [cube_geometry(scene, x, scratch) for x in states]
     far_x = np.array([g["far_corner"][0] for g in geometry])
     slip = float(np.max(np.abs(far_x - far_x[0])))
     error = abs(angles[-1] - target_angle)
@@ -166,13 +294,23 @@ def label_failure_mode(trajectory: Trajectory, scene: Scene, target_angle: float
     peak = int(np.argmax(angles))
     if angles[peak] > rules.whack_fraction * target_angle and \
             angles[-1] < angles[peak] - rules.fall_back:
-        gaps = trajectory.ball_gap[peak:]  # measured by simulate() at every state
-        dt = float(np.median(np.diff(trajectory.times))) if len(states) > 1 else 0.0
-        away = float(np.sum(gaps > rules.contact_gap) * dt)
+        away = _time_away(trajectory, peak, rules.contact_gap)
         if away >= rules.lost_time:
             return 3, (f"peak {angles[peak]:.2f} rad, contact lost {away:.2f} s, "
                        f"fell back to {angles[-1]:.2f} rad")
     return 5, f"final error {error:.3f} rad; no rule matched"
+
+
+def _time_away(trajectory: Trajectory, start: int, gap: float) -> float:
+    """Time the ball spent farther than ``gap`` from the cube after recorded state ``start``:
+    at the plant's rate when ``simulate`` measured it for that threshold, else from the
+    recorded states (each standing for one control period)."""
+    plant = trajectory.plant
+    if plant is not None and math.isclose(plant.away_gap, gap, rel_tol=1e-12):
+        return plant.count(float(np.sum(plant.away_time[start:]))) * plant.plant_step
+    gaps = trajectory.ball_gap[start:]
+    dt = float(np.median(np.diff(trajectory.times))) if len(trajectory.times) > 1 else 0.0
+    return float(np.sum(gaps > gap) * dt)
 
 
 @dataclass
@@ -242,16 +380,6 @@ class ClosedLoopOutcome:
         return row
 
 
-def _bind_input(law: Callable[[np.ndarray, float, np.ndarray], np.ndarray], u: np.ndarray
-                ) -> Callable[[np.ndarray, float], np.ndarray]:
-    """``law(x, s, u)`` with the planned input ``u`` bound: a control of ``Plant.step_with``."""
-
-    def control(x: np.ndarray, s: float) -> np.ndarray:
-        return law(x, s, u)
-
-    return control
-
-
 def _plan_fields(info: dict[str, Any], ok: bool) -> dict[str, np.ndarray | None]:
     """The plan arrays of a policy's ``info`` (``None`` when missing or the step failed)."""
     out: dict[str, np.ndarray | None] = {}
@@ -263,9 +391,15 @@ def _plan_fields(info: dict[str, Any], ok: bool) -> dict[str, np.ndarray | None]
 
 def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0,
              x0: np.ndarray | None = None, plant_scene: Scene | None = None,
-             progress: Callable[[int, int], None] | None = None
+             progress: Callable[[int, int], None] | None = None,
+             contact_gap: float | None = None, away_gap: float | None = None
              ) -> tuple[Trajectory, list[StepRecord]]:
     """Run ``policy`` on the MuJoCo plant for ``duration`` seconds, replanning every ``dt``.
+
+    After every plant step a :class:`ContactProbe` updates the period's contact statistics
+    (``Trajectory.plant``): touching at signed distance ``<= contact_gap`` (default
+    :attr:`SuccessRules.contact_gap`), away at ``> away_gap`` (default
+    :attr:`FailureRules.contact_gap`).
 
     A policy that returns a non-finite input, or raises, is a failed step: the last safe input
     is held instead and the step is counted (``ok = False``, with its ``fallback_reason``).
@@ -282,7 +416,12 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
     steps = control_steps(duration, dt)
     last_safe = np.zeros(scene.nu)
     records: list[StepRecord] = []
-    states, inputs, gaps, times = [state], [], [cube_geometry(scene, state)["ball_gap"]], [0.0]
+    scratch = mujoco.MjData(scene.model)
+    probe = ContactProbe(scene, SuccessRules().contact_gap if contact_gap is None
+                         else contact_gap,
+                         FailureRules().contact_gap if away_gap is None else away_gap)
+    states, inputs, times = [state], [], [0.0]
+    gaps = [cube_geometry(scene, state, scratch)["ball_gap"]]
     for k in range(steps):
         t = k * dt
         start = time.perf_counter()
@@ -324,15 +463,17 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
                                   if ok and commanded.shape == u.shape else None,
                                   **_plan_fields(info, ok)))
         law = info.get("control_law") if ok else None
-        state = plant.step_with(_bind_input(law, u), dt) if law else plant.step(u, dt)
+        probe.begin(t)
+        state = advance(plant, u, dt, probe, law or None)
+        probe.end()
         states.append(state)
         inputs.append(u)
-        gaps.append(cube_geometry(scene, state)["ball_gap"])
+        gaps.append(cube_geometry(scene, state, scratch)["ball_gap"])
         times.append((k + 1) * dt)
         if progress is not None:
             progress(k + 1, steps)
     trajectory = Trajectory(np.array(times), np.array(states), np.array(inputs),
-                            np.array(gaps))
+                            np.array(gaps), probe.record())
     return trajectory, records
 
 
@@ -351,7 +492,8 @@ def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene
 
     commanded = np.array([r.input if r.commanded is None else r.commanded for r in records]
                          ).reshape(len(records), scene.nu)
-    geometry = [cube_geometry(scene, x) for x in states]
+    scratch = mujoco.MjData(scene.model)
+    geometry = [cube_geometry(scene, x, scratch) for x in states]
     return RunSignals(
         times=trajectory.times,
         angles=np.array([scene.cube_angle(x) for x in states]),
@@ -364,7 +506,7 @@ def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene
         lcs_next=stacked("lcs_next", nx), states=states,
         angle_index=2,  # planar: theta is x[2]
         ball_above_top=np.array([g["ball_local"][2] > scene.l / 2 for g in geometry]),
-        pivot_x=np.array([g["far_corner"][0] for g in geometry]))
+        pivot_x=np.array([g["far_corner"][0] for g in geometry]), plant=trajectory.plant)
 
 
 def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
@@ -422,14 +564,16 @@ def run_closed_loop(spec: ControllerSpec, config: Config | None = None,
     plant_scene = build_scene(config=plant_cfg)
     with step_backends(spec) as backends:
         policy = make_policy(spec, cfg, backends)
-        trajectory, records = _simulate_with_progress(spec, policy, cfg, duration, steps,
-                                                      plant_scene, progress, x0)
+        trajectory, records = _simulate_with_progress(
+            spec, policy, cfg, duration, steps, plant_scene, progress, x0,
+            (rules or SuccessRules()).contact_gap)
     return trajectory, records, summarise(trajectory, records, plant_scene, cfg, rules)
 
 
 def _simulate_with_progress(spec: ControllerSpec, policy: Policy, cfg: Config,
                             duration: float, steps: int, plant_scene: Scene, progress: bool,
-                            x0: np.ndarray | None) -> tuple[Trajectory, list[StepRecord]]:
+                            x0: np.ndarray | None, contact_gap: float
+                            ) -> tuple[Trajectory, list[StepRecord]]:
     """:func:`simulate` with one BLAS thread and, when ``progress``, a progress bar."""
     bar = progress_bar(progress, steps, spec.label(), "step")
 
@@ -440,7 +584,8 @@ def _simulate_with_progress(spec: ControllerSpec, policy: Policy, cfg: Config,
         with single_thread_blas():  # small dense solves: one BLAS thread is fastest
             trajectory, records = simulate(policy, cfg, duration, x0=x0,
                                            plant_scene=plant_scene,
-                                           progress=callback if progress else None)
+                                           progress=callback if progress else None,
+                                           contact_gap=contact_gap)
     finally:
         bar.close()
     return trajectory, records

@@ -1,21 +1,30 @@
 """Physical metrics of a closed-loop run, and the success rule built on them.
 
-Computed from what :func:`bench.closed_loop.simulate` records (one plant state per control
-step, the ball-cube signed distance at each, the commanded and applied inputs, the plan's
-predicted next state and the LCS rollout of the plan's first input); see docs/closed_loop.md.
+Computed from what :func:`bench.closed_loop.simulate` records: one plant state per control
+step (the ball-cube signed distance at each, the commanded and applied inputs, the plan's
+predicted next state and the LCS rollout of the plan's first input) and, per control period,
+the contact it measured at every plant step (1 ms; :class:`PlantContact`). The contact
+metrics and the penetrations are taken at the plant's rate when that record is present, and
+from the recorded states alone otherwise (runs recorded before it existed); see
+docs/closed_loop.md.
 
 * **peak angle** ``max theta`` and whether it passed the **balance angle**
   ``atan((l/2) / (l/2)) = pi/4`` (the cube's centre of mass over the pivot edge);
 * after the ball first **touches** the cube (signed distance <= ``contact_gap``): **time in
-  contact** and **time out of contact** (each recorded state but the last stands for one
-  control period), and the **impact speed**: the ball's speed at the last recorded state
-  before the touch (at the touch itself when the run starts in contact);
+  contact** and **time out of contact** (each 1 ms plant state stands for the plant step that
+  ended at it; from the recorded states alone, each recorded state but the last stands for
+  one control period), and the **impact speed**: the ball's speed relative to the cube (the
+  cube's material point at the ball's centre) at the plant state of the touch (from the
+  recorded states alone: the ball's speed at the last recorded state before the touch, at the
+  touch itself when the run starts in contact); ``contact_step`` is the resolution of these
+  (the plant step, or the control period);
 * **settling time**: the first time after which ``|theta - theta*|`` stays within the band
   (``success_tolerance``) until the end, and **hold time** ``T_end - settling time`` (0 when
   the run ends outside the band); **steady offset**: the mean of ``theta - theta*`` over the
   last ``hold_time`` seconds;
 * **maximum penetration** of the ball into the cube (``-min`` signed distance) and into the
-  table (``-min (z_ball - r - table height)``), 0 when it never penetrates;
+  table (``-min (z_ball - r - table height)``) over every plant state, 0 when it never
+  penetrates;
 * **clipped inputs**: control steps whose commanded input exceeded the force limit in some
   coordinate (the simulator applies the clipped one);
 * **plan consistency** (median and max over the steps that have a plan): the 2-norm of the
@@ -25,8 +34,8 @@ predicted next state and the LCS rollout of the plan's first input); see docs/cl
 
 **Success** (:class:`SuccessRules`): the run lasted at least ``min_duration`` (3 s), the
 angle stayed within the band for at least ``hold_time`` (1 s) at its end, and neither
-penetration exceeded ``max_penetration`` (5 mm). **Gentle success**: success without passing
-the balance angle.
+penetration (at the plant's rate) exceeded ``max_penetration`` (5 mm). **Gentle success**:
+success without passing the balance angle.
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -83,6 +93,7 @@ class PhysicalMetrics:
     contact_time: float
     free_time: float
     impact_speed: float
+    contact_step: float
     settling_time: float
     hold_time: float
     steady_offset: float
@@ -99,6 +110,63 @@ class PhysicalMetrics:
     plan_plant_angle_max: float
     success: bool
     gentle_success: bool
+
+
+@dataclass(frozen=True)
+class PlantContact:
+    """Contact measured at every plant step by :func:`bench.closed_loop.simulate`: one entry
+    per control period ``k`` (N-1 of them), over the plant states that end its plant steps
+    (the last of them is recorded state ``k + 1``; recorded state 0 belongs to no period).
+
+    Attributes
+    ----------
+    plant_step
+        The plant's time step ``h`` (s); every plant state stands for the step ending at it.
+    contact_gap
+        Signed distance (m) at or below which :attr:`contact_time` and :attr:`touch_time`
+        count the ball as touching (the run's :attr:`SuccessRules.contact_gap`).
+    away_gap
+        Signed distance (m) above which :attr:`away_time` counts the ball as away (the
+        ``contact_gap`` of the failure modes, :class:`bench.closed_loop.FailureRules`).
+    min_gap
+        Smallest ball-cube signed distance in the period (m; negative: penetration).
+    min_height
+        Smallest ``z_ball - r - table height`` in the period (m).
+    contact_time, away_time
+        ``h`` times the number of the period's plant states with signed distance
+        ``<= contact_gap``, and ``> away_gap`` (s).
+    touch_time
+        Time of the period's first plant state with signed distance ``<= contact_gap`` (s;
+        NaN when none).
+    touch_speed
+        At that state, the ball's speed relative to the cube's material point at the ball's
+        centre (m/s; NaN when none).
+    """
+
+    plant_step: float
+    contact_gap: float
+    away_gap: float
+    min_gap: np.ndarray
+    min_height: np.ndarray
+    contact_time: np.ndarray
+    away_time: np.ndarray
+    touch_time: np.ndarray
+    touch_speed: np.ndarray
+
+    COLUMNS: ClassVar[tuple[str, ...]] = (
+        "min_gap", "min_height", "contact_time", "away_time", "touch_time", "touch_speed")
+    """The per-period arrays (stored as ``plant_<name>`` columns of ``steps.csv``)."""
+
+    def __post_init__(self) -> None:
+        lengths = {np.shape(getattr(self, name)) for name in self.COLUMNS}
+        if len(lengths) != 1 or len(next(iter(lengths))) != 1:
+            raise ValueError(f"PlantContact arrays must be 1-D of one length, got {lengths}")
+        if not (math.isfinite(self.plant_step) and self.plant_step > 0):
+            raise ValueError(f"plant_step must be > 0, got {self.plant_step!r}")
+
+    def count(self, seconds: float) -> int:
+        """``seconds`` as a whole number of plant steps."""
+        return round(seconds / self.plant_step)
 
 
 @dataclass(frozen=True)
@@ -132,6 +200,9 @@ class RunSignals:
         Per state (N, or empty when not measured): the ball centre above the cube's top face
         in the cube frame, and the x of the cube's far bottom corner (m); for the labels of
         :mod:`bench.closed_loop_labels`.
+    plant
+        The contact measured at every plant step, per control period (N-1; ``None`` for a
+        run recorded without it: the contact metrics then use the recorded states alone).
     """
 
     times: np.ndarray
@@ -148,6 +219,7 @@ class RunSignals:
     angle_index: int = 2
     ball_above_top: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     pivot_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    plant: PlantContact | None = None
 
 
 def balance_angle(side_x: float, side_z: float | None = None) -> float:
@@ -192,19 +264,59 @@ def _nan_stats(values: np.ndarray) -> tuple[float, float]:
     return float(np.median(finite)), float(np.max(finite))
 
 
-def _contact(signals: RunSignals, rules: SuccessRules) -> tuple[float, float, float, float]:
-    """``(first touch time, time in contact, time out of contact, impact speed)``."""
+def _contact(signals: RunSignals, rules: SuccessRules
+             ) -> tuple[float, float, float, float, float]:
+    """``(first touch time, time in contact, time out of contact, impact speed, resolution)``,
+    at the plant's rate when :attr:`RunSignals.plant` is there, else from the recorded
+    states."""
+    plant = signals.plant
+    if plant is None:
+        return _sampled_contact(signals, rules)
+    if not math.isclose(plant.contact_gap, rules.contact_gap, rel_tol=1e-12, abs_tol=1e-15):
+        raise ValueError(f"the plant-rate contact was measured at contact_gap "
+                         f"{plant.contact_gap!r}, the rules ask for {rules.contact_gap!r}")
+    if signals.ball_gap[0] <= rules.contact_gap:  # the run starts in contact
+        first, period, speed, own = float(signals.times[0]), 0, float(signals.ball_speed[0]), 0
+    else:
+        hits = np.flatnonzero(np.isfinite(plant.touch_time))
+        if not hits.size:
+            return math.nan, 0.0, 0.0, math.nan, plant.plant_step
+        period = int(hits[0])
+        first, speed, own = float(plant.touch_time[period]), \
+            float(plant.touch_speed[period]), 1  # the touching state itself is not "after"
+    touching = plant.count(float(np.sum(plant.contact_time[period:]))) - own
+    after = plant.count(float(signals.times[-1]) - first)
+    h = plant.plant_step
+    return first, touching * h, max(after - touching, 0) * h, speed, h
+
+
+def _sampled_contact(signals: RunSignals, rules: SuccessRules
+                     ) -> tuple[float, float, float, float, float]:
+    """:func:`_contact` from the recorded states alone (each but the last stands for one
+    control period; impact speed at the last state before the touch)."""
     touching = signals.ball_gap <= rules.contact_gap
     hits = np.flatnonzero(touching)
+    periods = np.diff(signals.times)
+    resolution = float(np.median(periods)) if periods.size else math.nan
     if not hits.size:
-        return math.nan, 0.0, 0.0, math.nan
+        return math.nan, 0.0, 0.0, math.nan, resolution
     first = int(hits[0])
-    periods = np.diff(signals.times)[first:]
     inside = touching[first:-1]
-    contact = float(np.sum(periods[inside]))
-    free = float(np.sum(periods[~inside]))
+    contact = float(np.sum(periods[first:][inside]))
+    free = float(np.sum(periods[first:][~inside]))
     speed = float(signals.ball_speed[max(first - 1, 0)])
-    return float(signals.times[first]), contact, free, speed
+    return float(signals.times[first]), contact, free, speed, resolution
+
+
+def _penetrations(signals: RunSignals) -> tuple[float, float]:
+    """Deepest ball penetration into the cube and into the table (m, >= 0), over every plant
+    state when :attr:`RunSignals.plant` is there."""
+    gaps, heights = [signals.ball_gap], [signals.ball_height]
+    if signals.plant is not None and signals.plant.min_gap.size:
+        gaps.append(signals.plant.min_gap)
+        heights.append(signals.plant.min_height)
+    return (max(0.0, -float(np.min(np.concatenate(gaps)))),
+            max(0.0, -float(np.min(np.concatenate(heights)))))
 
 
 def _settling(signals: RunSignals, target: float, band: float) -> tuple[float, float]:
@@ -250,12 +362,11 @@ def physical_metrics(signals: RunSignals, target: float, band: float,
     rules = rules or SuccessRules()
     peak = float(np.max(signals.angles))
     balance = balance_angle(signals.cube_side)
-    touch, contact, free, speed = _contact(signals, rules)
+    touch, contact, free, speed, resolution = _contact(signals, rules)
     settle, hold = _settling(signals, target, band)
     window = signals.times >= signals.times[-1] - rules.hold_time - 1e-9
     offset = float(np.mean(signals.angles[window] - target))
-    cube_pen = max(0.0, -float(np.min(signals.ball_gap)))
-    table_pen = max(0.0, -float(np.min(signals.ball_height)))
+    cube_pen, table_pen = _penetrations(signals)
     clipped = int(np.sum(np.any(np.abs(signals.commanded) > signals.force_limit + 1e-9,
                                 axis=1))) if signals.commanded.size else 0
     duration = float(signals.times[-1] - signals.times[0])
@@ -264,7 +375,8 @@ def physical_metrics(signals: RunSignals, target: float, band: float,
     passed = peak > balance
     return PhysicalMetrics(
         peak_angle=peak, balance_angle=balance, passed_balance=passed, first_touch_time=touch,
-        contact_time=contact, free_time=free, impact_speed=speed, settling_time=settle,
+        contact_time=contact, free_time=free, impact_speed=speed, contact_step=resolution,
+        settling_time=settle,
         hold_time=hold, steady_offset=offset, max_cube_penetration=cube_pen,
         max_table_penetration=table_pen, clipped_inputs=clipped, **_consistency(signals),
         success=success, gentle_success=success and not passed)

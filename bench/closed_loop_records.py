@@ -22,9 +22,14 @@ __all__ = ["records_frame", "render_run", "run_summary", "write_run"]
 
 def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scene
                   ) -> Any:
-    """One row per control step: time, state, input, angle, timings, ok, NaNs, diagnostics."""
+    """One row per control step: time, state, input, angle, timings, ok, NaNs, diagnostics
+    and, when the run measured them, the contact of the step's control period at the plant's
+    rate (``plant_min_gap``, ``plant_min_height``, ``plant_contact_time``,
+    ``plant_away_time``, ``plant_touch_time``, ``plant_touch_speed``:
+    :class:`~c3bench.bench.closed_loop_metrics.PlantContact`)."""
     import pandas as pd
 
+    plant = trajectory.plant
     rows = []
     for k, record in enumerate(records):
         row: dict[str, Any] = {"step": k, "time": record.time,
@@ -43,6 +48,9 @@ def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scen
         lcs = np.full(scene.nx, np.nan) if record.lcs_next is None else record.lcs_next
         row["plan_lcs_error"] = float(np.linalg.norm(plan - lcs))
         row["plan_plant_error"] = float(np.linalg.norm(plan - trajectory.states[k + 1]))
+        if plant is not None:
+            row.update({f"plant_{name}": float(getattr(plant, name)[k])
+                        for name in plant.COLUMNS})
         row.update(record.info)
         rows.append(row)
     return pd.DataFrame(rows)

@@ -246,13 +246,17 @@ class SuiteRun:
 
 
 def _stored(cell_dir: Path, case: Case) -> dict[str, Any] | None:
+    """The stored row of ``case``; ``None`` when there is none or it is stale: a row without
+    ``contact_step`` was measured before the contact metrics were taken at the plant's rate
+    (:class:`bench.closed_loop_metrics.PlantContact`), so its case runs again."""
     path = cell_dir / case.name / "summary.json"
     if not path.exists():
         return None
     try:
-        return json.loads(path.read_text())
+        row = json.loads(path.read_text())
     except json.JSONDecodeError:
         return None
+    return row if isinstance(row, dict) and "contact_step" in row else None
 
 
 def _write_table(directory: Path, rows: list[dict[str, Any]], names: Sequence[str]) -> None:

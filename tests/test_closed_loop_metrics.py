@@ -11,6 +11,7 @@ import pytest
 
 from c3bench.bench.closed_loop import ControllerSpec, records_frame, run_closed_loop
 from c3bench.bench.closed_loop_metrics import (
+    PlantContact,
     RunSignals,
     SuccessRules,
     balance_angle,
@@ -71,6 +72,7 @@ def test_each_metric_on_a_hand_made_run() -> None:
     assert m.settling_time == pytest.approx(2.0) and m.hold_time == pytest.approx(1.0)
     assert m.steady_offset == pytest.approx(0.02)
     assert m.max_cube_penetration == 0.0 and m.max_table_penetration == 0.0
+    assert m.contact_step == pytest.approx(DT)  # no plant-rate record: the recorded states
     assert m.clipped_inputs == 2
     assert m.plan_plant_angle_median == pytest.approx(0.1)
     assert m.plan_plant_angle_max == pytest.approx(0.1)
@@ -156,3 +158,74 @@ def test_plan_consistency_equals_a_hand_rollout_of_a_recorded_step() -> None:
     # never acts (before the limits were in the QP the first plan asked for about 34 N)
     assert outcome.metrics.clipped_inputs == 0 and np.abs(first.commanded).max() <= 30 + 1e-6
     assert not outcome.success  # 0.1 s is too short to succeed
+
+
+H = 0.001  # plant step
+
+
+def plant_record(**changes: object) -> PlantContact:
+    """Per period (60), what the plant did between the recorded states of :func:`signals`:
+    a strike at 0.058 s (plant state 58, in period 1) at 3.4 m/s, 13 ms on the cube (states
+    58-70), off it until the recorded touch (period 9 ends at state 10), then as recorded:
+    touching throughout periods 9-28 and 39-59, never in 29-38."""
+    n = N - 1
+    contact = np.zeros(n)
+    contact[1] = 13 * H
+    contact[9:29] = contact[39:] = 0.05
+    touch = np.full(n, np.nan)
+    touch[1] = 0.058
+    touch[9:29] = np.arange(9, 29) * DT + H
+    touch[39:] = np.arange(39, n) * DT + H
+    speed = np.full(n, np.nan)
+    speed[np.isfinite(touch)] = 0.1
+    speed[1] = 3.4
+    min_gap = np.where(np.isfinite(touch), 0.0, 0.05)
+    min_gap[1] = -0.003
+    base = PlantContact(plant_step=H, contact_gap=0.002, away_gap=0.02, min_gap=min_gap,
+                        min_height=np.full(n, 0.1), contact_time=contact,
+                        away_time=0.05 - contact, touch_time=touch, touch_speed=speed)
+    return replace(base, **changes)
+
+
+def test_contact_between_recorded_states_is_measured_at_the_plant_rate() -> None:
+    m = physical_metrics(signals(plant=plant_record()), TARGET, BAND)
+    old = physical_metrics(signals(), TARGET, BAND)
+    assert old.first_touch_time == pytest.approx(0.5) and old.impact_speed == pytest.approx(0.7)
+    assert m.first_touch_time == pytest.approx(0.058) and m.impact_speed == pytest.approx(3.4)
+    # after state 58: 12 more in the strike, 20 + 21 full periods on the cube
+    assert m.contact_time == pytest.approx((12 + 41 * 50) * H)
+    assert m.free_time == pytest.approx(3.0 - 0.058 - (12 + 41 * 50) * H)
+    assert m.contact_step == H
+    assert m.max_cube_penetration == pytest.approx(0.003) and m.success
+
+
+def test_penetration_between_recorded_states_fails_the_success_rule() -> None:
+    record = plant_record()
+    deep = record.min_gap.copy()
+    deep[20] = -0.006  # 6 mm into the cube between two recorded states
+    m = physical_metrics(signals(plant=replace(record, min_gap=deep)), TARGET, BAND)
+    assert m.max_cube_penetration == pytest.approx(0.006) and not m.success
+    low = record.min_height.copy()
+    low[40] = -0.0055
+    m = physical_metrics(signals(plant=replace(record, min_height=low)), TARGET, BAND)
+    assert m.max_table_penetration == pytest.approx(0.0055) and not m.success
+    assert physical_metrics(signals(), TARGET, BAND).success  # the samples saw neither
+
+
+def test_plant_rate_contact_when_the_run_starts_touching() -> None:
+    base = signals()
+    gap = base.ball_gap.copy()
+    gap[0] = 0.0
+    record = plant_record()
+    contact = record.contact_time.copy()
+    contact[0] = 0.05
+    m = physical_metrics(replace(base, ball_gap=gap, plant=replace(record, contact_time=contact)),
+                         TARGET, BAND)
+    assert m.first_touch_time == 0.0 and m.impact_speed == base.ball_speed[0]
+    assert m.contact_time == pytest.approx((50 + 13 + 41 * 50) * H)
+    assert m.contact_time + m.free_time == pytest.approx(3.0)
+
+
+def test_plant_record_arrays_are_checked() -> None:
+    with pytest.raises(ValueError, match="one length"):
+        plant_record(min_gap=np.zeros(3))
