@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import os
 import sys
 from collections.abc import Iterable, Sequence
@@ -170,6 +171,8 @@ def sweep_cases(dts: Sequence[float] = SWEEP_DTS,
     for dt, schedule, q_box, side in itertools.product(dts, schedules, q_boxes, model_ls):
         spec = _c3plus(backend, rho_schedule=schedule, model_l=side)
         name = f"sweep-dt{dt:g}-{schedule}-q{q_box:g}-l{side:g}"
+        if backend != "clarabel":  # the default keeps its names (and stored runs)
+            name += f"-{backend}"
         cases.append(Case(name, "sweep", spec, dt=dt, q_cube_pose=q_box))
     return cases
 
@@ -245,10 +248,24 @@ class SuiteRun:
     missing_reasons: list[str] = field(default_factory=list)
 
 
+def _same(stored: Any, expected: Any) -> bool:
+    """Whether a stored identifying value (read back from JSON) is ``expected``."""
+    if isinstance(expected, bool) or isinstance(stored, bool):
+        return stored is expected
+    if isinstance(expected, int | float) and isinstance(stored, int | float):
+        if math.isnan(expected) or math.isnan(stored):
+            return math.isnan(expected) and math.isnan(stored)
+        return math.isclose(stored, expected, rel_tol=1e-12, abs_tol=0.0)
+    return bool(stored == expected)
+
+
 def _stored(cell_dir: Path, case: Case) -> dict[str, Any] | None:
-    """The stored row of ``case``; ``None`` when there is none or it is stale: a row without
-    ``contact_step`` was measured before the contact metrics were taken at the plant's rate
-    (:class:`bench.closed_loop_metrics.PlantContact`), so its case runs again."""
+    """The stored row of ``case``; ``None`` when there is none or it is stale, so that the
+    case runs again: a row whose identifying columns (:func:`case_row`: controller, QP
+    backend, schedule, model, duration, seed, ...) differ from the case's was run for another
+    case under the same name (e.g. ``sweep --qp-backend`` over a folder of another backend's
+    runs); a row without ``contact_step`` was measured before the contact metrics were taken
+    at the plant's rate (:class:`bench.closed_loop_metrics.PlantContact`)."""
     path = cell_dir / case.name / "summary.json"
     if not path.exists():
         return None
@@ -256,7 +273,12 @@ def _stored(cell_dir: Path, case: Case) -> dict[str, Any] | None:
         row = json.loads(path.read_text())
     except json.JSONDecodeError:
         return None
-    return row if isinstance(row, dict) and "contact_step" in row else None
+    if not isinstance(row, dict) or "contact_step" not in row:
+        return None
+    for key, expected in case_row(case).items():
+        if expected is not None and not _same(row.get(key), expected):
+            return None
+    return row
 
 
 def _write_table(directory: Path, rows: list[dict[str, Any]], names: Sequence[str]) -> None:

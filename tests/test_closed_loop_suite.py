@@ -78,6 +78,23 @@ def test_suite_runs_stores_resumes_and_reports(tmp_path: Path) -> None:
     assert (tmp_path / "figures" / "closed_loop_angles.png").stat().st_size > 0
 
 
+def test_a_stored_run_of_another_backend_is_not_reused(tmp_path: Path) -> None:
+    """``sweep --qp-backend osqp`` over a folder of Clarabel runs reported the Clarabel rows
+    as done: a stored row whose identifying columns differ from the case's is stale."""
+    clarabel = Case("same-name", "sweep", ControllerSpec(qp_backend="clarabel"), duration=0.1)
+    osqp = Case("same-name", "sweep", ControllerSpec(qp_backend="osqp"), duration=0.1)
+    first = run_cases([clarabel], tmp_path, jobs=1, progress=False)
+    assert first.rows[0]["qp_backend"] == "clarabel" and first.rows[0]["error"] == ""
+    assert run_cases([clarabel], tmp_path, jobs=1, progress=False).skipped == 1
+    other = run_cases([osqp], tmp_path, jobs=1, progress=False)
+    assert other.skipped == 0 and other.rows[0]["qp_backend"] == "osqp"
+    stored = pd.read_parquet(tmp_path / "results.parquet")
+    assert list(stored["qp_backend"]) == ["osqp"]
+    grid = dict(dts=(0.1,), schedules=("geometric",), q_boxes=(2e4,), model_ls=(0.29,))
+    assert sweep_cases(**grid)[0].name == "sweep-dt0.1-geometric-q20000-l0.29"
+    assert sweep_cases(**grid, backend="osqp")[0].name.endswith("-osqp")
+
+
 def test_sweep_grid_has_one_cell_per_combination() -> None:
     cases = sweep_cases(dts=(0.05, 0.1), schedules=("geometric",), q_boxes=(2e5,),
                         model_ls=(0.29, 0.30))
