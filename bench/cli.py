@@ -13,8 +13,12 @@ Conventions, the same in every command:
 * ``--results ROOT`` is the results root; each command reads and writes its own folder under
   it (:mod:`bench.store`), default ``results``;
 * exit codes: 0 success, 1 error (nothing to read, a failed command, cells left missing, an
-  expected fault such as a full disk: one line ``error: ...``), 2 bad input (one line
-  ``error: ...``, never a traceback), 130 interrupted, 143 terminated (SIGTERM);
+  expected fault such as a disk filling up during the work: one line ``error: ...``), 2 bad
+  input (one line ``error: ...``, never a traceback: an option, a scheduler address, a
+  results root that cannot be written, a configuration value, a damaged input or results
+  file), 130 interrupted (Ctrl-C), 143 terminated (SIGTERM, one line ``terminated
+  (SIGTERM)``): :func:`main` turns SIGTERM into :class:`Terminated` around every command, so
+  a terminated command cleans up (children, temporary folders) exactly as after Ctrl-C;
 * every argument is checked before any work (:mod:`bench.cli_checks`); ``--debug`` (anywhere
   on the line) shows the traceback of an error instead of the one line; an unexpected
   exception (a bug) prints ``internal error`` and its traceback.
@@ -49,6 +53,7 @@ from c3bench.bench.cli_options import (
     positive_int,
 )
 from c3bench.bench.cli_problems import add_problems, add_skip_bad, capture_for, read_instance_dir
+from c3bench.bench.lock import terminate_as_exception
 from c3bench.bench.planning import DEFAULT_PRECISIONS, DEFAULT_SETTINGS, SEQUENCE_SCOPE, STARTS
 from c3bench.problems.capture import SUITES
 from c3bench.problems.errors import C3BenchError, InputError, Terminated
@@ -104,6 +109,7 @@ def check_run(args: argparse.Namespace) -> None:
     cli_checks.check_selection(available, args.families, args.precision,
                                in_suite if args.instances is not None
                                else cli_checks.suite_families(args.suite, args.results))
+    cli_checks.check_output_path("--results", store.SuitePaths.of(args.results, args.suite).root)
     instances = store.SuitePaths.of(args.results, args.suite).instances
     if args.instances is None and instances.is_dir():
         read_instance_dir(instances, args.skip_bad)
@@ -171,6 +177,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     cli_checks.check_output_path("--results", args.results)
     cli_checks.check_stored_suite(args.suite, args.results)
+    cli_checks.check_output_path("--results", store.SuitePaths.of(args.results, args.suite).root)
     path = write_report(args.suite, args.results, figures=not args.no_figures,
                         budget_ms=args.budget_ms)
     print(f"report: {path}")
@@ -181,6 +188,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
     """Print who wins between two solvers, per family and settings."""
     from c3bench.bench.compare import compare
 
+    if args.a == args.b:
+        raise InputError(f"compare: A and B are both {args.a!r}; give two different solvers")
     cli_checks.check_stored_suite(args.suite, args.results)
     print(compare(args.suite, args.a, args.b, args.results), end="")
     return EXIT_OK
@@ -354,13 +363,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def check_common(args: argparse.Namespace) -> None:
+    """The options several commands share, checked before the command's handler runs:
+    ``--scheduler`` is a Dask address (before any folder is made or client started)."""
+    if getattr(args, "scheduler", None) is not None:
+        from c3bench.bench.executors import check_scheduler_address
+
+        check_scheduler_address(args.scheduler)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse ``argv`` (default: the process's arguments), run the command, return its code.
 
     Expected faults print one line ``error: ...`` (with ``--debug``, the traceback as well):
-    bad input exits 2, other c3bench errors and ``OSError`` (disk full, read-only, a path
-    under a file) exit 1. Ctrl-C exits 130, SIGTERM (:class:`Terminated`) 143. Anything else
-    is a bug: ``internal error`` and its traceback, exit 1.
+    bad input exits 2, other c3bench errors and ``OSError`` (a disk that fills up during the
+    work) exit 1. Ctrl-C exits 130, SIGTERM (:class:`Terminated`, raised by the handler
+    installed here for the whole command) 143. Anything else is a bug: ``internal error`` and
+    its traceback, exit 1.
     """
     arguments = list(sys.argv[1:] if argv is None else argv)
     if "--debug" in arguments:  # accepted anywhere on the line, parsed as the global flag
@@ -370,9 +389,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as stop:  # --help, --version, usage errors
         return stop.code if isinstance(stop.code, int) else EXIT_ERROR
     try:
-        return int(args.handler(args))
+        with terminate_as_exception():  # SIGTERM stops every command like Ctrl-C
+            check_common(args)
+            return int(args.handler(args))
     except Terminated:
-        print("terminated (SIGTERM); finished work is kept", file=sys.stderr)
+        print("terminated (SIGTERM)", file=sys.stderr)
         return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

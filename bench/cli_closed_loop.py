@@ -41,6 +41,18 @@ from c3bench.bench.closed_loop_checks import (
 )
 from c3bench.problems.errors import InputError, RenderUnavailable
 
+MAX_DURATION_S = 3600.0
+"""Longest ``--duration`` of a closed-loop run or trial (s): an hour of simulated time, some
+72 000 control steps at the default dt, far beyond any task (success needs 3 s)."""
+
+
+def duration(text: str) -> float:
+    """``--duration``: a finite number of seconds in (0, :data:`MAX_DURATION_S`]."""
+    value = positive_float(text)
+    if value > MAX_DURATION_S:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_DURATION_S:g} s, got {text!r}")
+    return float(value)
+
 
 def _missing(run: Any) -> int:
     """Exit code of a closed-loop suite: 1 (with what is missing) when infrastructure faults
@@ -64,9 +76,11 @@ def metric_lines(metrics: Any) -> list[str]:
         + ("never" if metrics.settling_time != metrics.settling_time
            else f"at {metrics.settling_time:.2f} s")
         + f"), steady offset {metrics.steady_offset:+.3f} rad",
-        f"contact           first touch {metrics.first_touch_time:.2f} s at "
-        f"{metrics.impact_speed:.2f} m/s; {metrics.contact_time:.2f} s in contact, "
-        f"{metrics.free_time:.2f} s out",
+        "contact           "
+        + ("no contact" if metrics.first_touch_time != metrics.first_touch_time
+           else f"first touch {metrics.first_touch_time:.2f} s at "
+                f"{metrics.impact_speed:.2f} m/s")
+        + f"; {metrics.contact_time:.2f} s in contact, {metrics.free_time:.2f} s out",
         f"penetration       cube {1e3 * metrics.max_cube_penetration:.1f} mm, table "
         f"{1e3 * metrics.max_table_penetration:.1f} mm; clipped inputs "
         f"{metrics.clipped_inputs} steps",
@@ -281,9 +295,9 @@ def add_closed_loop(sub: Any) -> None:
                       help=f"ADMM iterations per step (default: {spec.admm_iterations})")
     loop.add_argument("--no-weighting", action="store_true",
                       help="robust variants: uniform sample weights")
-    loop.add_argument("--duration", type=positive_float, default=3.0, metavar="S",
-                      help="seconds of simulation, a multiple of dt (default: 3; success "
-                           "needs at least 3)")
+    loop.add_argument("--duration", type=duration, default=3.0, metavar="S",
+                      help="seconds of simulation, a multiple of dt, at most "
+                           f"{MAX_DURATION_S:g} (default: 3; success needs at least 3)")
     loop.add_argument("--qp-time-limit", type=positive_float, default=spec.qp_time_limit,
                       metavar="S",
                       help="seconds per QP (and C3 projection) solve, run in an isolated "
@@ -310,9 +324,9 @@ def add_closed_loop(sub: Any) -> None:
                         help="episodes (default: 20)")
     trials.add_argument("--seed", type=nonnegative_int, default=0, metavar="S",
                         help="seed of the randomization (default: 0)")
-    trials.add_argument("--duration", type=positive_float, default=3.0, metavar="S",
-                        help="seconds per episode, a multiple of dt (default: 3; success "
-                             "needs at least 3)")
+    trials.add_argument("--duration", type=duration, default=3.0, metavar="S",
+                        help="seconds per episode, a multiple of dt, at most "
+                             f"{MAX_DURATION_S:g} (default: 3; success needs at least 3)")
     trials.add_argument("--hold-time", type=positive_float, default=1.0, metavar="S",
                         help="seconds the angle must stay in the band at the end (default: 1)")
     add_executor(trials, "trials")

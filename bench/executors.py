@@ -366,6 +366,29 @@ def _scheduler_lost(error: BaseException, client: Any) -> bool:
             or getattr(client, "status", "running") not in ("running", "newly-created"))
 
 
+def check_scheduler_address(address: str, option: str = "--scheduler") -> None:
+    """``address`` is a Dask scheduler address (``tcp://host:port``, ``host:port``, ...).
+
+    Checked before a ``Client`` is made: one given a malformed address fails half-built and
+    its finaliser then waits 20 s for a connection that never existed.
+
+    Raises
+    ------
+    InputError
+        The address cannot be parsed (no port, unknown scheme, port out of range).
+    """
+    from distributed.comm.addressing import get_address_host_port
+
+    try:
+        _, port = get_address_host_port(address)
+    except ValueError as error:
+        if "don't know how to extract" in str(error):
+            return  # a scheme without host:port (ucx, inproc): the client checks it
+        raise InputError(f"{option} {address!r}: {error}") from None
+    if not 0 < port < 65536:
+        raise InputError(f"{option} {address!r}: port {port} is not in 1-65535")
+
+
 class DaskPool:
     """Tasks on a Dask distributed cluster (``Client(address)``), same interface.
 
@@ -385,6 +408,7 @@ class DaskPool:
         self.address = address
         self.retries = retries
         self.lost = ""
+        check_scheduler_address(address)
         try:
             self.client = Client(address, timeout=connect_timeout, set_as_default=False)
         except ValueError as error:

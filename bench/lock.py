@@ -12,7 +12,9 @@ lock; pool workers forked while the lock is held close their copy
 
 :func:`terminate_as_exception` turns SIGTERM into
 :class:`~c3bench.problems.errors.Terminated` (a ``KeyboardInterrupt``), so a terminated run
-stops its workers and keeps what finished exactly as after Ctrl-C.
+stops its workers and keeps what finished exactly as after Ctrl-C. The CLI
+(:func:`bench.cli.main`) holds it around every command; nested uses (:func:`exclusive_run`)
+then do nothing.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ LOCK_NAME = "c3bench.lock"
 
 _HELD: set[int] = set()
 """Descriptors of the locks this process holds (closed, never unlocked, in forked children)."""
+_TERMINATE_ACTIVE = False
+"""Whether a :func:`terminate_as_exception` block is active in this process."""
 
 
 @dataclass(frozen=True)
@@ -170,9 +174,12 @@ def terminate_as_exception() -> Iterator[None]:
 
     Only the first SIGTERM raises; later ones are ignored while the interrupted work cleans
     up (stops its workers, consolidates what finished). The previous handler is restored on
-    exit. Outside the main thread (where handlers cannot be set) this does nothing.
+    exit. Outside the main thread (where handlers cannot be set) this does nothing; nested in
+    another such block (the CLI installs one around every command) it does nothing either, so
+    a SIGTERM raises once per process, never again in the cleanup of an outer block.
     """
-    if threading.current_thread() is not threading.main_thread():
+    global _TERMINATE_ACTIVE
+    if _TERMINATE_ACTIVE or threading.current_thread() is not threading.main_thread():
         yield
         return
     raised = False
@@ -184,9 +191,11 @@ def terminate_as_exception() -> Iterator[None]:
             raise Terminated("received SIGTERM")
 
     previous = signal.signal(signal.SIGTERM, handler)
+    _TERMINATE_ACTIVE = True
     try:
         yield
     finally:
+        _TERMINATE_ACTIVE = False
         signal.signal(signal.SIGTERM, previous)
 
 

@@ -13,7 +13,6 @@ file diffs well between runs.
 from __future__ import annotations
 
 import datetime as dt
-import json
 import re
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from c3bench.bench.report_accuracy import budget_section, claimed_wrong_section
 from c3bench.bench.report_sequence import other_rows, sequence_section
 from c3bench.bench.report_why import why_slow_section
 from c3bench.bench.tables import NOT_RUN, fmt, fmt_accuracy, markdown_table
+from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.names import QP_FAMILIES, Precision, Start
 
 __all__ = ["build_report", "family_table", "fmt", "markdown_table", "perf_report_section",
@@ -308,6 +308,29 @@ def _family_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> list[str]:
     return out
 
 
+SOLVER_TABLE_KEYS = frozenset({"name", "version", "available", "reason", "families",
+                               "precisions"})
+"""Keys of each entry of ``run_info.json``'s ``solver_table``."""
+
+
+def read_run_info(path: Path) -> dict[str, Any]:
+    """``run_info.json`` of a suite; :class:`~c3bench.problems.errors.SchemaVersionError`
+    naming the file when it is damaged (not a JSON object, or its ``packages`` /
+    ``solver_table`` not of the shape the report reads)."""
+    info = store.read_json_object(path, "run_info.json")
+    table = info.get("solver_table") or []
+    if not isinstance(info.get("packages", {}), dict):
+        wrong = "packages is not an object"
+    elif not (isinstance(table, list) and all(
+            isinstance(entry, dict) and entry.keys() >= SOLVER_TABLE_KEYS for entry in table)):
+        wrong = (f"solver_table is not a list of objects with keys "
+                 f"{', '.join(sorted(SOLVER_TABLE_KEYS))}")
+    else:
+        return info
+    raise SchemaVersionError(f"{path}: damaged, not a c3bench run_info.json ({wrong}); delete "
+                             f"it or run the command that wrote it again")
+
+
 def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
                  figures: bool = True, budget_ms: float | None = None) -> str:
     """The report's Markdown text (draws the figures into ``paths.figures``).
@@ -317,7 +340,7 @@ def build_report(paths: store.SuitePaths, frame: pd.DataFrame | None = None,
     """
     everything = store.read_results(paths.root) if frame is None else frame
     frame = other_rows(everything)  # the sequence cells have their own section
-    info = json.loads(paths.run_info.read_text()) if paths.run_info.exists() else {}
+    info = read_run_info(paths.run_info) if paths.run_info.exists() else {}
     summary = aggregate(frame)
     suite = paths.root.name
     out = [f"# c3bench report: suite `{suite}`\n",

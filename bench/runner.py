@@ -58,7 +58,7 @@ from c3bench.bench.reference import (
 )
 from c3bench.bench.rows import CellOutcome, reference_task, run_cell, run_sequence_cell
 from c3bench.problems.capture import SUITES, SuiteSpec
-from c3bench.problems.errors import InputError
+from c3bench.problems.errors import InputError, SchemaVersionError
 from c3bench.problems.identity import (
     InstanceIdentity,
     identify,
@@ -125,7 +125,10 @@ def ensure_instances(spec: Any, paths: store.SuitePaths, capture: Any = None,
     manifest_path = paths.instances / "manifest.json"
     known = SUITES.get(spec) if isinstance(spec, str) else spec
     if manifest_path.exists() and isinstance(known, SuiteSpec):
-        why = out_of_date(known, json.loads(manifest_path.read_text()))
+        try:
+            why = out_of_date(known, store.read_json_object(manifest_path, "manifest"))
+        except SchemaVersionError:
+            why = "its manifest.json is damaged"
         if why:
             print(f"note: regenerating the {known.name} instances under {paths.instances}: {why}",
                   file=sys.stderr)
@@ -261,6 +264,8 @@ def identify_instances(paths: store.SuitePaths, instances: InstanceSet) -> dict[
     try:
         manifest = json.loads((paths.instances / MANIFEST).read_text())
     except (OSError, ValueError):
+        manifest = None
+    if not isinstance(manifest, dict):
         manifest = None
     current: dict[str, InstanceIdentity] = {}
     for problem, path in zip(instances.problems, instances.paths, strict=True):

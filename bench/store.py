@@ -282,12 +282,30 @@ def read_parquet(path: Path, readable: tuple[int, ...] = (SCHEMA_VERSION,)) -> p
     return table
 
 
-def read_cell(path: Path) -> dict[str, Any]:
-    """Read one cell file, rejecting another schema version."""
+def read_json_object(path: Path, what: str) -> dict[str, Any]:
+    """The JSON object stored in ``path`` (a c3bench ``what``: "cell file", ...).
+
+    Raises
+    ------
+    SchemaVersionError
+        The file is damaged: not UTF-8, not JSON (a truncated write) or not a JSON object;
+        the one-line message names the file and what is wrong with it.
+    """
     try:
         payload = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise SchemaVersionError(f"{path}: not a c3bench cell file ({error})") from error
+    except ValueError as error:  # JSONDecodeError, UnicodeDecodeError
+        raise SchemaVersionError(f"{path}: damaged, not a c3bench {what} ({error}); delete "
+                                 f"it or run the command that wrote it again") from error
+    if not isinstance(payload, dict):
+        raise SchemaVersionError(f"{path}: damaged, not a c3bench {what} (a JSON "
+                                 f"{type(payload).__name__}, expected an object); delete it "
+                                 f"or run the command that wrote it again")
+    return payload
+
+
+def read_cell(path: Path) -> dict[str, Any]:
+    """Read one cell file, rejecting another schema version or a damaged file."""
+    payload = read_json_object(path, "cell file")
     check_version(payload.get("schema_version"), path)
     try:
         return normalise_row(payload)
@@ -318,7 +336,7 @@ def read_trace(paths: SuitePaths, relative: str) -> dict[str, Any]:
     path = paths.root / relative
     if not path.exists():
         return {}
-    payload: dict[str, Any] = json.loads(path.read_text())
+    payload = read_json_object(path, "trace file")
     check_version(payload.get("schema_version"), path)
     return payload
 

@@ -10,6 +10,7 @@ Part of the plant-free core: standard library only (no MuJoCo, no CasADi).
 from __future__ import annotations
 
 import math
+import numbers
 import tomllib
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -18,6 +19,19 @@ from typing import Any
 from c3bench.problems.errors import InputError
 
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("cube_tipping.toml")
+
+
+def _is_number(value: Any) -> bool:
+    """A finite real number (``int``, ``float``, a NumPy scalar; not a ``bool``)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) \
+        and math.isfinite(value)
+
+
+def _check_pair(name: str, value: Any) -> None:
+    """``value`` is a pair of finite numbers."""
+    if not (isinstance(value, tuple | list) and len(value) == 2
+            and all(_is_number(v) for v in value)):
+        raise ValueError(f"{name} must be a pair of finite numbers [a, b], got {value!r}")
 
 
 def _require_positive(name: str, value: float) -> None:
@@ -45,6 +59,8 @@ class SceneConfig:
         for name in ("cube_side", "cube_mass", "ball_radius", "ball_mass", "force_limit",
                      "plant_timestep"):
             _require_positive(name, getattr(self, name))
+        for name in ("ball_start", "contact_solref"):
+            _check_pair(name, getattr(self, name))
         for name in ("mu_table", "mu_ball"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
@@ -134,6 +150,22 @@ TABLES: dict[str, type] = {"scene": SceneConfig, "mpc": MPCConfig, "limits": Lim
 """The tables of a configuration file and the dataclass each fills."""
 
 
+def _check_type(source: Path, table: str, key: str, value: Any, default: Any) -> None:
+    """``value`` of ``[table] key`` has the type of the key's default: a finite number, an
+    integer, or a list of as many finite numbers as the default (its range checks come from
+    the dataclass); :class:`InputError` naming the file and the key otherwise."""
+    if isinstance(default, tuple):
+        if not (isinstance(value, list) and len(value) == len(default)
+                and all(_is_number(v) for v in value)):
+            raise InputError(f"{source}: [{table}] {key} must be a list of {len(default)} "
+                             f"finite numbers, got {value!r}")
+    elif isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{source}: [{table}] {key} must be an integer, got {value!r}")
+    elif isinstance(default, float) and not _is_number(value):
+        raise InputError(f"{source}: [{table}] {key} must be a finite number, got {value!r}")
+
+
 def _build(cls: type, name: str, table: Any, source: Path) -> Any:
     """The dataclass ``cls`` from the TOML table ``[name]``; :class:`InputError` naming the
     file, the table and the key at fault."""
@@ -144,6 +176,9 @@ def _build(cls: type, name: str, table: Any, source: Path) -> Any:
     if unknown:
         raise InputError(f"{source}: unknown key(s) {sorted(unknown)} in [{name}]; known: "
                          f"{', '.join(sorted(known))}")
+    defaults = {f.name: f.default for f in fields(cls)}
+    for key, value in table.items():
+        _check_type(source, name, key, value, defaults[key])
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
     try:
         return cls(**values)

@@ -115,40 +115,49 @@ def _run_repeats(job: SolveJob, notify: Callable[[int], None]) -> Result:
 
 
 def _solve_in_child(connection: Connection, plugins: tuple[str, ...], payload: bytes) -> None:
-    """Child of :func:`solve_isolated`: one job, then exit."""
+    """Child of :func:`solve_isolated`: one job, then exit (quietly when the parent went
+    away: an ``EOFError`` or ``OSError`` on the pipe)."""
     detach()
-    connection.send((Reply.STARTED, os.getpid()))
-    job = load(connection, plugins, payload)
-    if not isinstance(job, SolveJob):
+    try:
+        connection.send((Reply.STARTED, os.getpid()))
+        job = load(connection, plugins, payload)
+        if not isinstance(job, SolveJob):
+            return
+        connection.send((Reply.READY, None))
+
+        def notify(repeats: int) -> None:
+            connection.send((Reply.WARM, repeats))
+
+        result = registry.guarded(job.backend.name, job.problem,
+                                  functools.partial(_run_repeats, job, notify))
+        send(connection, (Reply.DONE, result))
+    except (EOFError, OSError):  # the parent closed the pipe or died
         return
-    connection.send((Reply.READY, None))
-
-    def notify(repeats: int) -> None:
-        connection.send((Reply.WARM, repeats))
-
-    result = registry.guarded(job.backend.name, job.problem,
-                              functools.partial(_run_repeats, job, notify))
-    send(connection, (Reply.DONE, result))
 
 
 def _serve_in_child(connection: Connection, plugins: tuple[str, ...], payload: bytes) -> None:
     """Child of :class:`IsolatedBackend`: solve every ``(problem, settings, warm_start)``
-    received until the pipe closes, BLAS on one thread."""
+    received until the pipe closes, BLAS on one thread.
+
+    A parent that goes away (its pipe closes, even in the middle of a message or of the
+    reply) ends the child quietly: an ``EOFError`` or ``OSError`` on the pipe is the end of
+    the work, not an error to print.
+    """
     detach()
-    connection.send((Reply.STARTED, os.getpid()))
-    backend = load(connection, plugins, payload)
-    if not isinstance(backend, Backend):
-        return
-    connection.send((Reply.READY, None))
-    with pinned_blas():
-        while True:
-            try:
+    try:
+        connection.send((Reply.STARTED, os.getpid()))
+        backend = load(connection, plugins, payload)
+        if not isinstance(backend, Backend):
+            return
+        connection.send((Reply.READY, None))
+        with pinned_blas():
+            while True:
                 problem, settings, warm_start = connection.recv()
-            except EOFError:
-                return
-            problem = expand(problem)
-            call = functools.partial(backend.solve, problem, settings, warm_start)
-            send(connection, (Reply.DONE, registry.guarded(backend.name, problem, call)))
+                problem = expand(problem)
+                call = functools.partial(backend.solve, problem, settings, warm_start)
+                send(connection, (Reply.DONE, registry.guarded(backend.name, problem, call)))
+    except (EOFError, OSError):  # the parent closed the pipe or died
+        return
 
 
 def _failure(message: Message, process: BaseProcess, solver: str, problem: str,

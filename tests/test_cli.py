@@ -4,16 +4,19 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from c3bench import __version__
 from c3bench.bench.cli import build_parser, main
+from c3bench.bench.cli_closed_loop import metric_lines
 from c3bench.bench.cli_options import ListAction
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -222,3 +225,26 @@ def test_solvers_plugin_registers_a_backend(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     line = next(line for line in done.stdout.splitlines() if "plugin_fake" in line)
     assert "registered by a test plugin" in line and " yes " in f" {line} "
+
+
+def _metrics(**values: float) -> SimpleNamespace:
+    """The fields :func:`metric_lines` prints, zero unless given."""
+    names = ("peak_angle", "balance_angle", "hold_time", "settling_time", "steady_offset",
+             "first_touch_time", "impact_speed", "contact_time", "free_time",
+             "max_cube_penetration", "max_table_penetration", "clipped_inputs",
+             "plan_lcs_angle_median", "plan_lcs_angle_max", "plan_lcs_error_median",
+             "plan_plant_angle_median", "plan_plant_angle_max", "plan_plant_error_median")
+    return SimpleNamespace(gentle_success=False, passed_balance=False,
+                           **{name: values.get(name, 0.0) for name in names})
+
+
+def test_closed_loop_summary_says_no_contact_instead_of_nan() -> None:
+    never = next(line for line in metric_lines(_metrics(
+        first_touch_time=math.nan, impact_speed=math.nan, free_time=3.0))
+        if line.startswith("contact"))
+    assert never == "contact           no contact; 0.00 s in contact, 3.00 s out"
+    touched = next(line for line in metric_lines(_metrics(
+        first_touch_time=0.058, impact_speed=3.41, contact_time=1.0, free_time=2.0))
+        if line.startswith("contact"))
+    assert touched == ("contact           first touch 0.06 s at 3.41 m/s; 1.00 s in contact, "
+                       "2.00 s out")

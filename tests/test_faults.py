@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import gc
 import json
 import math
 import os
@@ -38,7 +39,7 @@ from c3bench.bench.lock import LOCK_NAME, DirectoryLock, read_holder
 from c3bench.bench.reference import load_references
 from c3bench.bench.rows import reference_task
 from c3bench.problems.capture import SuiteSpec
-from c3bench.problems.errors import ResultsLocked
+from c3bench.problems.errors import InputError, ResultsLocked
 from c3bench.problems.instance import Problem
 from c3bench.problems.suites import generate_suite
 
@@ -370,6 +371,90 @@ def test_an_unreachable_scheduler_is_one_error_naming_it_within_the_timeout() ->
     with pytest.raises(SchedulerUnreachable, match=re.escape(address)):
         DaskPool(address, connect_timeout=2)
     assert time.monotonic() - started < 10
+
+
+def _cli_env() -> dict[str, str]:
+    """The environment of a ``python -m c3bench`` child: this checkout first."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+
+@pytest.mark.parametrize(("address", "words"), [
+    ("garbage", "missing port number in address 'garbage'"),
+    ("tcp://127.0.0.1:99999", "port 99999 is not in 1-65535"),
+    ("nosuch://host:1", "unknown address scheme 'nosuch'"),
+])
+def test_a_malformed_scheduler_address_fails_at_once_without_a_half_made_client(
+        address: str, words: str) -> None:
+    """No ``Client`` is made for an address Dask cannot parse: one half made waits 20 s in
+    its finaliser and prints a ``TimeoutError`` traceback."""
+    pytest.importorskip("distributed")
+    started = time.monotonic()
+    with pytest.raises(InputError, match=re.escape(f"--scheduler {address!r}: ") + ".*"
+                       + re.escape(words)):
+        DaskPool(address)
+    gc.collect()
+    assert time.monotonic() - started < 5
+
+
+@pytest.mark.timeout(120)
+def test_a_malformed_scheduler_address_on_the_cli_is_one_line_and_creates_nothing(
+        tmp_path: Path) -> None:
+    results = tmp_path / "results"
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "c3bench", "closed-loop-trials",
+                           "--scheduler", "garbage", "--results", str(results)], cwd=ROOT,
+                          env=_cli_env(), capture_output=True, text=True, timeout=100)
+    assert done.returncode == 2, done.stderr
+    # nothing after the line: no client finaliser waiting 20 s, then a TimeoutError traceback
+    assert done.stderr == ("error: --scheduler 'garbage': missing port number in address "
+                           "'garbage'\n"), done.stderr
+    assert time.monotonic() - started < 20
+    assert not results.exists()
+
+
+# --- SIGTERM of every long command --------------------------------------------------------------
+def _terminate(process: subprocess.Popen[str], tree: set[int]) -> str:
+    """SIGTERM ``process``; check it exits 143 with the one line ``terminated (SIGTERM)``
+    and that every process of ``tree`` ends; return its stderr."""
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 143, err
+    assert err == "terminated (SIGTERM)\n", err
+    all_end(lambda: tree, 5)
+    return err
+
+
+@pytest.mark.timeout(180)
+def test_sigterm_of_problems_generate_leaves_no_staging_folder(tmp_path: Path) -> None:
+    out = tmp_path / "G"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "c3bench", "problems", "generate", "--suite", "default",
+         "--capture", "provisional", "--quiet", "--out", str(out)], cwd=ROOT, env=_cli_env(),
+        text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        wait_until(lambda: any(tmp_path.glob(".G.generating-*")), 120,
+                   "the staging folder", process)
+        _terminate(process, descendants(process.pid))
+    finally:
+        process.kill()
+        process.communicate()
+    assert sorted(path.name for path in tmp_path.iterdir()) == []
+
+
+@pytest.mark.timeout(180)
+def test_sigterm_of_a_closed_loop_run_stops_it_and_its_qp_child(tmp_path: Path) -> None:
+    process = subprocess.Popen(
+        [sys.executable, "-m", "c3bench", "closed-loop", "--duration", "30", "--quiet",
+         "--results", str(tmp_path / "results")], cwd=ROOT, env=_cli_env(), text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        wait_until(lambda: bool(descendants(process.pid)), 120, "the QP child", process)
+        time.sleep(1.0)  # some control steps, each a request to the child
+        _terminate(process, descendants(process.pid))
+    finally:
+        process.kill()
+        process.communicate()
 
 
 # --- SIGTERM and kill -9 of the run -----------------------------------------------------------

@@ -392,6 +392,31 @@ def test_killing_the_parent_kills_the_solver_and_its_subprocess(tmp_path: Path) 
 
 
 @pytest.mark.timeout(120)
+def test_a_parent_gone_mid_message_ends_the_persistent_child_quietly(tmp_path: Path) -> None:
+    """The closed loop's persistent child whose parent stops in the middle of sending a
+    request (SIGTERM of ``c3bench closed-loop``): the pipe ends within a message, and the child
+    exits 0 without printing ``OSError: got end of file during message``."""
+    parent = _python("""
+        import struct
+        from c3bench.solvers.base import Settings
+        from c3bench.solvers.isolation import IsolatedBackend
+        from test_isolation import Exact, equality_qp
+        backend = IsolatedBackend(Exact(), time_limit=30)
+        assert backend.solve(equality_qp(), Settings()).found
+        child = backend._child
+        connection, process = child.connection, child.process
+        connection._send(struct.pack("!i", 1 << 20) + b"x" * 16)  # a cut-off request
+        connection.close()
+        process.join(30)
+        print("exit", process.exitcode)
+        """, tmp_path)
+    out, err = parent.communicate(timeout=100)
+    assert parent.returncode == 0, err.decode()
+    assert out.decode().split() == ["exit", "0"], (out.decode(), err.decode())
+    assert "Traceback" not in err.decode() and "end of file" not in err.decode(), err.decode()
+
+
+@pytest.mark.timeout(120)
 def test_a_script_without_a_main_guard_is_not_rerun(tmp_path: Path) -> None:
     """A child does not re-run the parent's ``__main__`` (multiprocessing would, and this
     script would then solve again in every child); a backend defined there is refused with

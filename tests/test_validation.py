@@ -97,6 +97,16 @@ BAD_ARGUMENTS = [
     (["perf", "--repeats", "0"], "--repeats"),
     (["perf", "--reference-budget", "0"], "--reference-budget"),
     (["perf", "--cpu", "100000"], "--cpu"),
+    # a malformed Dask address: refused before a folder is made or a client started
+    (["run", "--scheduler", "garbage", "--solvers", "lemke"], "--scheduler 'garbage'"),
+    (["closed-loop-trials", "--scheduler", "garbage"], "--scheduler 'garbage'"),
+    (["closed-loop-suite", "--scheduler", "tcp://host:99999"], "--scheduler"),
+    (["sweep", "--scheduler", "nosuchscheme://host:1"], "--scheduler"),
+    # a family the packaged suite does not generate: refused before generating it
+    (["run", "--suite", "quick", "--families", "qp", "--solvers", "clarabel"], "--families"),
+    (["compare", "clarabel", "clarabel"], "two different solvers"),
+    (["closed-loop", "--duration", "1e12"], "--duration"),
+    (["closed-loop-trials", "--duration", "3601"], "--duration"),
 ]
 
 
@@ -251,6 +261,15 @@ def test_a_bug_says_internal_error_with_its_traceback(tmp_path: Path) -> None:
     ("[mpc]\ndt = -1.0\n", "[mpc] dt must be"),
     ("[mpc\ndt = 0.04\n", "not valid TOML"),
     ("mpc = 3\n", "mpc must be a table"),
+    ("[scene]\nball_start = [1.0]\n", "[scene] ball_start must be a list of 2 finite numbers"),
+    ("[scene]\nball_start = \"x\"\n", "[scene] ball_start must be a list of 2"),
+    ("[scene]\nball_start = [1.0, \"a\"]\n", "[scene] ball_start must be a list of 2"),
+    ("[scene]\nball_start = [1.0, nan]\n", "[scene] ball_start must be a list of 2"),
+    ("[scene]\ncontact_solref = [0.004]\n", "[scene] contact_solref must be a list of 2"),
+    ("[scene]\nmu_table = \"x\"\n", "[scene] mu_table must be a finite number"),
+    ("[scene]\ntable_height = nan\n", "[scene] table_height must be a finite number"),
+    ("[mpc]\nhorizon = 7.5\n", "[mpc] horizon must be an integer"),
+    ("[limits]\nball_x = [0.1, 0.2, 0.3]\n", "[limits] ball_x must be a list of 2"),
 ])
 def test_config_errors_name_the_file_and_the_table(text: str, words: str,
                                                    tmp_path: Path) -> None:
@@ -271,6 +290,12 @@ def test_config_file_missing_or_misspelled_table_on_the_cli(
     bad.write_text("[mcp]\ndt = 0.04\n")
     assert main(["problems", "generate", "--out", str(out), "--config", str(bad)]) == 2
     assert "[mcp]" in _one_line_error(capsys.readouterr())
+    assert not out.exists()
+    bad.write_text("[scene]\nball_start = [1.0]\n")
+    assert main(["problems", "generate", "--out", str(out), "--config", str(bad),
+                 "--capture", "provisional"]) == 2
+    line = _one_line_error(capsys.readouterr())
+    assert f"{bad}: [scene] ball_start must be" in line, line
     assert not out.exists()
 
 
@@ -484,9 +509,10 @@ def test_read_only_results_is_one_line_naming_the_path(small_mount: Path) -> Non
     read_only = f"mount -o remount,ro {small_mount} &&"
     done = _in_namespace(read_only, small_mount, "run", "--suite", "quick", "--solvers",
                          "lemke", "--families", "lcp", "--results", str(small_mount / "r"))
-    assert done.returncode == 1, done.stderr
+    assert done.returncode == 2, done.stderr  # bad input, found before any work
     assert "Traceback" not in done.stderr and done.stderr.count("\n") == 1, done.stderr
-    assert done.stderr == f"error: {small_mount / 'r'}: read-only file system\n"
+    assert done.stderr == \
+        f"error: --results: cannot write to {small_mount / 'r'}: read-only file system\n"
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file permissions")
@@ -496,10 +522,67 @@ def test_unwritable_results_is_one_line(tmp_path: Path,
     locked.mkdir(mode=0o555)
     try:
         assert main(["run", "--solvers", "lemke", "--families", "lcp", "--results",
-                     str(locked / "r"), "--quiet"]) == 1
-        assert "permission denied" in _one_line_error(capsys.readouterr())
+                     str(locked / "r"), "--quiet"]) == 2
+        line = _one_line_error(capsys.readouterr())
+        assert "--results: cannot write to" in line and "permission denied" in line
     finally:
         locked.chmod(0o755)
+
+
+UNWRITABLE = Path("/proc/c3bench-test")
+"""A results root that cannot be created (even by root): under /proc."""
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
+@pytest.mark.parametrize("argv", [
+    ["run", "--suite", "quick", "--solvers", "lemke", "--families", "lcp", "--quiet"],
+    ["perf", "--samples", "1", "--backend", "c3plus-riccati", "--repeats", "1", "--warmup",
+     "0", "--iterations", "1"],
+    ["closed-loop", "--quiet"], ["closed-loop-trials", "--trials", "1", "--quiet"],
+    ["sweep", "--dt", "0.05", "--rho-schedule", "adaptive", "--q-box", "2e5", "--model-l",
+     "0.29", "--quiet"],
+], ids=lambda argv: argv[0])
+def test_unwritable_results_is_bad_input_before_any_work(
+        argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([*argv, "--results", str(UNWRITABLE)]) == 2
+    line = _one_line_error(capsys.readouterr())
+    assert line.startswith(f"error: --results: cannot write to {UNWRITABLE}"), line
+
+
+# --- damaged results files ----------------------------------------------------------------------
+def _reported_suite(tmp_path: Path) -> store.SuitePaths:
+    """A stored suite with one (synthetic) cell and a run_info.json."""
+    from synthetic_results import row
+
+    paths = store.SuitePaths.of(tmp_path, "damaged")
+    paths.cells.mkdir(parents=True)
+    store.write_json(paths.cells / "one.json", row(cell_id="one"))
+    store.write_json(paths.run_info, {"date": "2025-01-01", "packages": {}})
+    return paths
+
+
+@pytest.mark.parametrize(("which", "damage", "words"), [
+    ("run_info", lambda text: text[:10], "not a c3bench run_info.json"),
+    ("run_info", lambda text: "[1, 2]", "a JSON list, expected an object"),
+    ("run_info", lambda text: '{"packages": [1]}', "packages is not an object"),
+    ("run_info", lambda text: '{"solver_table": [1]}', "solver_table"),
+    ("cell", lambda text: "[1, 2]", "a JSON list, expected an object"),
+    ("cell", lambda text: text[:10], "not a c3bench cell file"),
+    ("cell", lambda text: "\udcff", "damaged"),
+], ids=["run_info-truncated", "run_info-list", "run_info-packages", "run_info-table",
+        "cell-list", "cell-truncated", "cell-not-utf8"])
+def test_a_damaged_results_file_is_one_line_naming_it(
+        which: str, damage: Any, words: str, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    paths = _reported_suite(tmp_path)
+    target = paths.run_info if which == "run_info" else paths.cells / "one.json"
+    damaged = damage(target.read_text())
+    target.write_bytes(damaged.encode("utf-8", "surrogateescape"))
+    assert main(["report", "--suite", "damaged", "--results", str(tmp_path),
+                 "--no-figures"]) == 2
+    line = _one_line_error(capsys.readouterr())
+    assert line.startswith(f"error: {target}: damaged") and words in line, line
+    assert not paths.report.exists()
 
 
 # --- perf keeps every run -----------------------------------------------------------------------
