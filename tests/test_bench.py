@@ -417,6 +417,8 @@ def test_local_pool_survives_dead_and_stuck_workers() -> None:
 
 
 # --- Dask ---------------------------------------------------------------------------------------
+@pytest.mark.slow  # 35-40 s; the Dask path stays in the default run through test_faults'
+# lost-scheduler and daemonic-worker tests
 def test_dask_cluster_gives_the_same_rows(tmp_path: Path, instances: Path) -> None:
     distributed = pytest.importorskip("distributed")
     options = dict(solvers=["fake_kkt", "fake_wrong"], families=("c3_qp",),

@@ -9,6 +9,7 @@ a hand-written sphere-box distance, as the audit did) must agree with them.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -29,7 +30,7 @@ from c3bench.bench.closed_loop import (
     simulate,
 )
 from c3bench.bench.closed_loop_metrics import PlantContact, SuccessRules, physical_metrics
-from c3bench.bench.closed_loop_suite import Case, _stored
+from c3bench.bench.closed_loop_suite import Case, _stored, case_row
 from c3bench.problems.config import load_config
 from c3bench.problems.scene import Plant, build_scene, home_state, target_state
 
@@ -189,9 +190,10 @@ def test_stored_rows_without_plant_rate_contact_are_run_again(tmp_path: Path) ->
     case = Case("c", "g", ControllerSpec())
     cell = tmp_path / "c"
     cell.mkdir()
-    (cell / "summary.json").write_text('{"case": "c", "success": true}')
+    row = {**case_row(case), "success": True}
+    (cell / "summary.json").write_text(json.dumps(row))
     assert _stored(tmp_path, case) is None  # measured at the recorded states only: stale
-    (cell / "summary.json").write_text('{"case": "c", "success": true, "contact_step": 0.001}')
+    (cell / "summary.json").write_text(json.dumps({**row, "contact_step": 0.001}))
     stored = _stored(tmp_path, case)
     assert stored is not None and stored["contact_step"] == 0.001
 

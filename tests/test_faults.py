@@ -459,7 +459,11 @@ def test_sigterm_of_a_closed_loop_run_stops_it_and_its_qp_child(tmp_path: Path) 
 
 # --- SIGTERM and kill -9 of the run -----------------------------------------------------------
 @pytest.mark.timeout(180)
-@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGKILL], ids=["sigterm", "kill-9"])
+@pytest.mark.parametrize("stop", [
+    signal.SIGTERM,
+    # kill -9 leaves what SIGTERM leaves minus the cleanup; opt-in to keep the default run
+    # inside CI's 15 minutes (test_bench's interrupt test resumes after a hard stop too)
+    pytest.param(signal.SIGKILL, marks=pytest.mark.slow)], ids=["sigterm", "kill-9"])
 def test_a_stopped_run_leaves_no_process_and_a_resume_stores_each_cell_once(
         bench: Bench, stop: signal.Signals) -> None:
     planned = 2 * N_INSTANCES
