@@ -234,29 +234,13 @@ class ContactProbe:
 def advance(plant: Plant, u: np.ndarray, duration: float, probe: ContactProbe,
             law: Callable[[np.ndarray, float, np.ndarray], np.ndarray] | None = None
             ) -> np.ndarray:
-    """Step ``plant`` for ``duration`` s, as :meth:`Plant.step` (``u`` held) or, with ``law``,
-    :meth:`Plant.step_with` (``law(x, s, u)`` every plant step, clipped to the force limit)
-    do, with ``probe`` observing every plant step; return the state. The same MuJoCo calls
-    in the same order as those methods, so the same states bit for bit."""
-    scene = plant.scene
-    model, data = scene.model, plant.data
-    step = float(model.opt.timestep)
-    count = round(duration / step)
-    if not (math.isfinite(duration) and duration > 0) or \
-            abs(count * step - duration) > 1e-9 * max(1.0, duration):
-        raise ValueError(f"duration {duration} is not a positive multiple of the plant step "
-                         f"{step}")
-    limit = scene.config.scene.force_limit
-    probe.watch(data)
+    """Step ``plant`` for ``duration`` s with :meth:`Plant.step` (``u`` held) or, with ``law``,
+    :meth:`Plant.step_with` (``law(x, s, u)`` every plant step), ``probe`` observing every
+    plant step; return the state."""
+    probe.watch(plant.data)
     if law is None:
-        data.ctrl[:] = scene.check_input(u)
-    for k in range(count):
-        if law is not None:
-            command = scene.check_input(law(plant.state(), k * step, u))
-            data.ctrl[:] = np.clip(command, -limit, limit)
-        mujoco.mj_step(model, data)
-        probe.observe(k + 1)
-    return plant.state()
+        return plant.step(u, duration, probe.observe)
+    return plant.step_with(lambda x, s: law(x, s, u), duration, probe.observe)
 
 
 def label_failure_mode(trajectory: Trajectory, scene: Scene, target_angle: float,

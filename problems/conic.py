@@ -121,12 +121,20 @@ def _side(label: str, value: Any, size: int, default: float) -> np.ndarray:
     if vector.shape != (size,) or np.any(np.isnan(vector)):
         raise InputError(f"conic: {label} must be {size} numbers (no NaN), got shape "
                          f"{vector.shape}")
-    wrong = -default  # +inf for a lower side, -inf for an upper one
-    hits = np.flatnonzero(vector == wrong)
-    if hits.size:
-        raise InputError(f"conic: {label}[{int(hits[0])}] = {wrong:+}: an infeasible "
-                         f"{'lower' if default < 0 else 'upper'} side")
+    lower = default < 0
+    index = infeasible_side(vector, lower)
+    if index is not None:
+        raise InputError(f"conic: {label}[{index}] = {-default:+}: an infeasible "
+                         f"{'lower' if lower else 'upper'} side")
     return vector
+
+
+def infeasible_side(bound: Any, lower: bool) -> int | None:
+    """Index of the first entry of ``bound`` that no point satisfies, ``+inf`` in a lower
+    bound or ``-inf`` in an upper one (``None`` when there is none)."""
+    wrong = np.inf if lower else -np.inf
+    hits = np.flatnonzero(np.asarray(bound, dtype=np.float64).reshape(-1) == wrong)
+    return int(hits[0]) if hits.size else None
 
 
 def _ordered(low_label: str, low: np.ndarray, high_label: str, high: np.ndarray) -> None:

@@ -55,7 +55,12 @@ from typing import Any
 
 import numpy as np
 
-from c3bench.problems.conic import CONIC_KEYS, conic_to_qpsolvers, is_conic
+from c3bench.problems.conic import (
+    CONIC_KEYS,
+    conic_to_qpsolvers,
+    infeasible_side,
+    is_conic,
+)
 from c3bench.problems.errors import InputError
 from c3bench.problems.families import lcp_general
 from c3bench.problems.instance import MANIFEST, Problem, atomic_write_bytes, save_problem
@@ -195,13 +200,11 @@ def _check_bounds(arrays: dict[str, np.ndarray | None]) -> None:
     """``ValueError`` naming the key and index of a lower bound ``+inf`` or an upper bound
     ``-inf`` (an infeasible constraint, which no solver would see: both are read as "no
     bound")."""
-    for key, wrong, relation in (("lb", np.inf, ">="), ("ub", -np.inf, "<=")):
+    for key, lower, relation in (("lb", True, ">="), ("ub", False, "<=")):
         bound = arrays.get(key)
-        if bound is None:
-            continue
-        hits = np.flatnonzero(np.asarray(bound, dtype=np.float64).reshape(-1) == wrong)
-        if hits.size:
-            index = int(hits[0])
+        index = None if bound is None else infeasible_side(bound, lower)
+        if index is not None:
+            wrong = np.inf if lower else -np.inf
             raise ValueError(f"{key}[{index}] = {wrong:+}: x[{index}] {relation} {wrong:+} is "
                              "infeasible")
 

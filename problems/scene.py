@@ -377,38 +377,48 @@ class Plant:
     def time(self) -> float:
         return float(self.data.time)
 
-    def step(self, u: np.ndarray, duration: float) -> np.ndarray:
-        """Hold the ball force ``u`` (zero-order hold) for ``duration`` seconds; return ``x``.
-
-        ``duration`` must be a whole number of plant steps (to 1e-9 relative).
-        """
-        u = self.scene.check_input(u)
+    def _count(self, duration: float) -> int:
+        """Plant steps in ``duration`` seconds (a whole number of them, to 1e-9 relative)."""
         if not (math.isfinite(duration) and duration > 0):
             raise ValueError(f"duration must be a finite number > 0, got {duration!r}")
         step = float(self.scene.model.opt.timestep)
         count = round(duration / step)
         if abs(count * step - duration) > 1e-9 * max(1.0, duration):
             raise ValueError(f"duration {duration} is not a multiple of the plant step {step}")
+        return count
+
+    def step(self, u: np.ndarray, duration: float,
+             observe: Callable[[int], None] | None = None) -> np.ndarray:
+        """Hold the ball force ``u`` (zero-order hold) for ``duration`` seconds; return ``x``.
+
+        ``duration`` must be a whole number of plant steps (to 1e-9 relative). ``observe(k)``,
+        when given, is called after the ``k``-th plant step (from 1), e.g. to measure contact
+        at the plant's rate.
+        """
+        u = self.scene.check_input(u)
+        count = self._count(duration)
         self.data.ctrl[:] = u
-        for _ in range(count):
+        for k in range(count):
             mujoco.mj_step(self.scene.model, self.data)
+            if observe is not None:
+                observe(k + 1)
         return self.state()
 
     def step_with(self, control: Callable[[np.ndarray, float], np.ndarray],
-                  duration: float) -> np.ndarray:
+                  duration: float, observe: Callable[[int], None] | None = None
+                  ) -> np.ndarray:
         """Step ``duration`` seconds with ``u = control(x, s)`` recomputed every plant step
-        (``s`` = seconds since the call), clipped to the force limit; return ``x``."""
-        if not (math.isfinite(duration) and duration > 0):
-            raise ValueError(f"duration must be a finite number > 0, got {duration!r}")
+        (``s`` = seconds since the call), clipped to the force limit; return ``x``
+        (``observe`` as in :meth:`step`)."""
+        count = self._count(duration)
         step = float(self.scene.model.opt.timestep)
-        count = round(duration / step)
-        if abs(count * step - duration) > 1e-9 * max(1.0, duration):
-            raise ValueError(f"duration {duration} is not a multiple of the plant step {step}")
         limit = self.scene.config.scene.force_limit
         for k in range(count):
             u = self.scene.check_input(control(self.state(), k * step))
             self.data.ctrl[:] = np.clip(u, -limit, limit)
             mujoco.mj_step(self.scene.model, self.data)
+            if observe is not None:
+                observe(k + 1)
         return self.state()
 
 

@@ -39,6 +39,7 @@ from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from multiprocessing.reduction import ForkingPickler
 from types import TracebackType
+from typing import TypeVar
 
 import numpy as np
 
@@ -114,16 +115,30 @@ def _run_repeats(job: SolveJob, notify: Callable[[int], None]) -> Result:
     return result
 
 
+_Loaded = TypeVar("_Loaded")
+
+
+def _handshake(connection: Connection, plugins: tuple[str, ...], payload: bytes,
+               expected: type[_Loaded]) -> _Loaded | None:
+    """A child's start: report ``STARTED`` with its pid, load ``payload`` (:func:`load`, which
+    reports a failure itself), and report ``READY`` when it is an ``expected``; ``None``
+    otherwise."""
+    connection.send((Reply.STARTED, os.getpid()))
+    loaded = load(connection, plugins, payload)
+    if not isinstance(loaded, expected):
+        return None
+    connection.send((Reply.READY, None))
+    return loaded
+
+
 def _solve_in_child(connection: Connection, plugins: tuple[str, ...], payload: bytes) -> None:
     """Child of :func:`solve_isolated`: one job, then exit (quietly when the parent went
     away: an ``EOFError`` or ``OSError`` on the pipe)."""
     detach()
     try:
-        connection.send((Reply.STARTED, os.getpid()))
-        job = load(connection, plugins, payload)
-        if not isinstance(job, SolveJob):
+        job = _handshake(connection, plugins, payload, SolveJob)
+        if job is None:
             return
-        connection.send((Reply.READY, None))
 
         def notify(repeats: int) -> None:
             connection.send((Reply.WARM, repeats))
@@ -145,11 +160,9 @@ def _serve_in_child(connection: Connection, plugins: tuple[str, ...], payload: b
     """
     detach()
     try:
-        connection.send((Reply.STARTED, os.getpid()))
-        backend = load(connection, plugins, payload)
-        if not isinstance(backend, Backend):
+        backend = _handshake(connection, plugins, payload, Backend)
+        if backend is None:
             return
-        connection.send((Reply.READY, None))
         with pinned_blas():
             while True:
                 problem, settings, warm_start = connection.recv()
