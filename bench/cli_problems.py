@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import shutil
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -151,7 +152,13 @@ def cmd_problems_import(args: argparse.Namespace) -> int:
     except InputError as error:
         raise InputError(f"--out: {error}") from error
     if args.module is not None:
-        problems, source = read_module(args.module), f"module {args.module}"
+        with warnings.catch_warnings(record=True) as caught:  # the user's code may warn
+            problems = read_module(args.module)
+        for warning in caught:
+            message = " ".join(str(warning.message).split())
+            print(f"warning: --module {args.module}: {warning.category.__name__}: {message} "
+                  f"({Path(warning.filename).name}:{warning.lineno})", file=sys.stderr)
+        source = f"module {args.module}"
     else:
         problems, source = read_npz_source(Path(args.source)), str(args.source)
     staging = staging_dir(out)

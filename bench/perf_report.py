@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -17,6 +18,7 @@ from c3bench.bench import perf_store, store
 from c3bench.bench.perf import PERF_FIGURE, REFERENCE_STEP_MS, TARGET_STEP_MS
 from c3bench.bench.perf_store import CacheState
 from c3bench.bench.perf_summary import format_ms, format_ratio, summarize
+from c3bench.problems.errors import SchemaVersionError
 
 CACHE_ORDER: tuple[str, ...] = (CacheState.WARM.value, CacheState.COLD.value)
 """Order of the cache states in the table and the targets."""
@@ -311,6 +313,46 @@ def perf_section(results_dir: str | Path, figure_link: str | None = None) -> str
     return "\n".join(lines)
 
 
+GPU_FIELDS = ("backend", "device", "device_kind", "precision", "samples", "admm_ms_median",
+              "admm_ms_p95", "load_avg")
+"""The fields of one GPU row that :func:`gpu_lines` reads."""
+_GPU_NUMBERS = frozenset({"samples", "admm_ms_median", "admm_ms_p95", "load_avg"})
+
+
+def gpu_rows(path: Path) -> list[dict[str, Any]]:
+    """The rows of one GPU run file (one JSON object per line, :data:`GPU_FIELDS` each).
+
+    Raises
+    ------
+    SchemaVersionError
+        A line is not JSON (a truncated copy), not an object, lacks a field or has text where
+        a number belongs; the one-line message names the file and the line.
+    """
+    rows = []
+    try:
+        lines = path.read_text().splitlines()
+    except UnicodeDecodeError as error:
+        raise SchemaVersionError(f"{path}: damaged, not a c3bench GPU run ({error}); delete "
+                                 f"it or measure again") from error
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except ValueError as error:
+            raise SchemaVersionError(f"{path}: line {number} damaged, not a c3bench GPU row "
+                                     f"({error}); delete it or measure again") from error
+        missing = [name for name in GPU_FIELDS if not isinstance(row, dict) or name not in row
+                   or (name in _GPU_NUMBERS and (isinstance(row[name], bool) or
+                                                 not isinstance(row[name], int | float)))]
+        if missing:
+            raise SchemaVersionError(f"{path}: line {number} is not a c3bench GPU row "
+                                     f"(missing or not a number: {', '.join(missing)}); "
+                                     f"delete it or measure again")
+        rows.append(row)
+    return rows
+
+
 def gpu_lines(directory: Path) -> list[str]:
     """The GPU runs of ``python -m c3bench.bench.gpu_perf`` stored under ``directory``
     (``*.jsonl``): ADMM time per backend, device and samples, with each row's ratio to the
@@ -324,7 +366,7 @@ def gpu_lines(directory: Path) -> list[str]:
              "gpu_perf`; the CPU rows are that machine's cores (JAX multi-threaded, the compiled "
              "kernel on one thread), so compare within a run.", ""]
     for path in runs:
-        rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        rows = gpu_rows(path)
         compiled = {(r["precision"], r["samples"]): r["admm_ms_median"] for r in rows
                     if r["backend"] == "c3plus-compiled"}
         lines += [f"`{path.name}`", "",

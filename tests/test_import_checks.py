@@ -187,10 +187,12 @@ def test_module_whose_test_set_warns_imports(tmp_path: Path, monkeypatch: pytest
                    "        warnings.warn('loading data the old way')\n"
                    "        yield 'warned', Problem(np.eye(2), np.ones(2))\n")
     out = tmp_path / "instances"
-    with pytest.warns(UserWarning, match="old way"):
-        code, _, err = _cli(capsys, "problems", "import", "--module", name, "--out", str(out))
+    code, _, err = _cli(capsys, "problems", "import", "--module", name, "--out", str(out))
     assert code == 0, err
     assert [p.name for p in load_instances(out)] == ["warned"]
+    # the user's warning is one line on stderr, naming the module and where it was raised
+    assert err.splitlines() == [f"warning: --module {name}: UserWarning: loading data the old "
+                                f"way ({name}.py:7)"]
 
 
 @pytest.mark.parametrize(("text", "words"), [

@@ -179,6 +179,23 @@ def test_gpu_lines_show_ratios_to_the_compiled_cpu_kernel(tmp_path: Path) -> Non
     assert gpu_lines(tmp_path / "absent") == []
 
 
+@pytest.mark.parametrize(("text", "reason"), [
+    ('{"backend": "c3plus-jax", "device": "gpu"', "line 1 damaged"),
+    ('[1, 2]\n', "missing or not a number: backend"),
+    ('{"backend": "c3plus-jax", "device": "gpu", "device_kind": "H200", "precision": '
+     '"float64", "samples": 16, "admm_ms_median": "fast", "admm_ms_p95": 1.0, '
+     '"load_avg": 0.1}\n', "not a number: admm_ms_median"),
+])
+def test_a_damaged_gpu_run_is_a_one_line_error_naming_the_file(tmp_path: Path, text: str,
+                                                                reason: str) -> None:
+    from c3bench.bench.perf_report import gpu_lines
+
+    (tmp_path / "run.jsonl").write_text(text)
+    with pytest.raises(SchemaVersionError, match=reason) as raised:
+        gpu_lines(tmp_path)
+    assert "run.jsonl" in str(raised.value) and "\n" not in str(raised.value)
+
+
 def test_the_figure_legend_counts_steps_per_cache_state() -> None:
     from c3bench.bench.plots_perf import _counts
 
