@@ -67,7 +67,7 @@ SCHEMA: tuple[Column, ...] = (
            "bound."),
     Column("found", "bool", "The solver claims a solution (never success on its own)."),
     Column("failure", "str", "Failure category from the registry: '', error, timeout, "
-           "invalid_input, non_finite, unsupported, unavailable, infeasible."),
+           "invalid_input, non_finite, unsupported, unavailable, infeasible, unbounded."),
     Column("status", "str", "Solver's own status text, or the failure reason."),
     Column("success", "bool", "found and every residual of the family below tolerance and "
            "cost_error below tolerance where a verified reference exists; projection / mpcc "

@@ -138,7 +138,10 @@ class Failure(StrEnum):
     UNAVAILABLE = "unavailable"
     """The backend's package is missing or cannot load."""
     INFEASIBLE = "infeasible"
-    """The solver reports the problem primal or dual infeasible."""
+    """The solver reports the problem (primal) infeasible, or infeasible or unbounded when it
+    cannot tell which."""
+    UNBOUNDED = "unbounded"
+    """The solver reports the problem dual infeasible: the objective unbounded below."""
 
 
 class Block(StrEnum):

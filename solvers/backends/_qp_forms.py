@@ -24,8 +24,9 @@ Two conversions serve all backends, each with its dual splitting:
 
 ``found`` is the solver's own verdict (fully solved only: OSQP's and SCS's "solved
 inaccurate" and Clarabel's ``AlmostSolved`` count as not found); when it is False the
-``failure`` category is ``Failure.INFEASIBLE`` or ``Failure.TIMEOUT`` where the status says
-so, else ``Failure.ERROR`` (:func:`failure_category`).
+``failure`` category is ``Failure.INFEASIBLE``, ``Failure.UNBOUNDED`` or ``Failure.TIMEOUT``
+where the status says so, in any backend's wording, else ``Failure.ERROR``
+(:func:`failure_category`).
 
 References
 ----------
@@ -240,9 +241,17 @@ def qp_result(name: str, problem: Problem, watch: Stopwatch, *, found: bool, sta
 
 
 def failure_category(status: str) -> Failure:
-    """``Failure.INFEASIBLE``, ``Failure.TIMEOUT`` or ``Failure.ERROR`` from a solver's status
-    text (``infeasib...``; ``time`` and ``limit``; anything else)."""
-    text = status.lower()
+    """The failure category of a solver's status text, the same for every backend's wording
+    (``_`` read as a space, case ignored): ``Failure.INFEASIBLE`` for "infeasible or
+    unbounded" (``inforunbd``), ``Failure.UNBOUNDED`` for "unbounded" or "dual infeasible"
+    (OSQP, PIQP, ProxQP, QPALM, Clarabel's ``DualInfeasible``, CVXPY, SCS, qpOASES),
+    ``Failure.INFEASIBLE`` for any other "infeasib...", ``Failure.TIMEOUT`` for "time" and
+    "limit", else ``Failure.ERROR``."""
+    text = status.lower().replace("_", " ")
+    if "infeasible or unbounded" in text or "inforunbd" in text:
+        return Failure.INFEASIBLE
+    if "unbounded" in text or "dual infeasib" in text or "dualinfeasib" in text:
+        return Failure.UNBOUNDED
     if "infeasib" in text:
         return Failure.INFEASIBLE
     if "time" in text and "limit" in text:

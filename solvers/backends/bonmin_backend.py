@@ -40,6 +40,7 @@ from c3bench.solvers.backends._miqp import (
     pairs_of,
     solver_time_limit,
 )
+from c3bench.solvers.backends._qp_forms import failure_category
 from c3bench.solvers.base import Result, Settings, WarmStart, require_module
 from c3bench.solvers.output import quiet_stdout
 from c3bench.solvers.registry import register
@@ -122,9 +123,9 @@ class BonminMIQP(MIQPBackend):
         point = np.asarray(solution["x"], dtype=float).ravel()
         x = point if np.all(np.isfinite(point)) else None
         success = bool(stats.get("success", False)) and status == "SUCCESS"
-        failure = (Failure.NONE if success
-                   else Failure.INFEASIBLE if "INFEASIBLE" in status.upper()
-                   else Failure.TIMEOUT if "TIME" in status.upper() else Failure.ERROR)
+        failure = Failure.NONE if success else failure_category(status)
+        if failure == Failure.ERROR and "TIME" in status.upper():  # e.g. a CPU-time limit
+            failure = Failure.TIMEOUT
         return finish_point(self.name, problem, settings, x, success and x is not None,
                             f"bonmin: {status}", watch, {}, None, failure)
 

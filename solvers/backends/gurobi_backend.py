@@ -129,7 +129,9 @@ class GurobiMIQP(MIQPBackend):
             diagnostics["primal_bound"] = float(model.ObjVal)
             diagnostics["dual_bound"] = float(model.ObjBound)
         found = model.Status == GRB.OPTIMAL and x is not None
-        failure = {"time_limit": Failure.TIMEOUT, "infeasible": Failure.INFEASIBLE}.get(
+        failure = {"time_limit": Failure.TIMEOUT, "infeasible": Failure.INFEASIBLE,
+                   "infeasible_or_unbounded": Failure.INFEASIBLE,
+                   "unbounded": Failure.UNBOUNDED}.get(
             status, Failure.NONE if found else Failure.ERROR)
         iterations = int(model.NodeCount)
         model.dispose()

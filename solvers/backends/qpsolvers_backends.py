@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -143,8 +144,19 @@ def _qpsolvers_iterations(solver: str, extras: dict[str, Any]) -> int | None:
     return None
 
 
-def _qpsolvers_status(solver: str, found: bool, extras: dict[str, Any]) -> str:
-    """The solver's own status text where qpsolvers keeps it."""
+QUADPROG_INCONSISTENT = "constraints are inconsistent, no solution"
+"""quadprog's own message for infeasible constraints (its ``ValueError``); qpsolvers drops it
+silently and warns with any other ``ValueError``'s message."""
+
+
+def _qpsolvers_status(solver: str, found: bool, extras: dict[str, Any],
+                      warned: Sequence[str] = ()) -> str:
+    """The solver's own status text where qpsolvers keeps it; for quadprog, which qpsolvers
+    keeps no status of, its ``ValueError``'s message: the one qpsolvers warned with, else
+    :data:`QUADPROG_INCONSISTENT` (the only ``ValueError`` qpsolvers does not warn about)."""
+    if solver == "quadprog" and not found:
+        errors = [text for text in warned if "quadprog raised a ValueError" in text]
+        return errors[0] if errors else f"quadprog: {QUADPROG_INCONSISTENT}"
     try:
         if solver in ("piqp", "qpalm"):
             return str(extras["info"].status).split(".")[-1]
@@ -204,8 +216,8 @@ class QpsolversBackend(QPBackend):
                 initvals = np.asarray(warm_start.x, dtype=float)
             options = self.options(settings)
         try:
-            with watch.lap("call"), warnings.catch_warnings():
-                warnings.simplefilter("ignore")
+            with watch.lap("call"), warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
                 solution = qpsolvers.solve_problem(qp, solver=self.spec.solver,
                                                    initvals=initvals, **options)
         except (qpsolvers.QPError, ValueError) as error:
@@ -219,13 +231,16 @@ class QpsolversBackend(QPBackend):
             inner_solve = watch.get("call")
         extras = solution.extras if isinstance(solution.extras, dict) else {}
         found = bool(solution.found)
-        status = _qpsolvers_status(self.spec.solver, found, extras)
+        status = _qpsolvers_status(self.spec.solver, found, extras,
+                                   [str(warning.message) for warning in caught])
         duals = None
         if solution.x is not None:
             duals = (_sized(solution.y, problem.n_eq), _sized(solution.z, problem.n_ineq),
                      _sized(solution.z_box, problem.n))
+        failure = Failure.INFEASIBLE if status.endswith(QUADPROG_INCONSISTENT) else \
+            failure_category(status)
         return qp_result(self.name, problem, watch, found=found, status=status,
-                         failure=failure_category(status), x=solution.x, duals=duals,
+                         failure=failure, x=solution.x, duals=duals,
                          iterations=_qpsolvers_iterations(self.spec.solver, extras),
                          setup_time=watch.get("setup") + watch.get("call") - inner_solve,
                          solve_time=inner_solve)

@@ -50,7 +50,8 @@ SCIP_MIN_FEASTOL = 1e-8
 
 SCIP_FAILURES: dict[str, Failure] = {"timelimit": Failure.TIMEOUT,
                                      "infeasible": Failure.INFEASIBLE,
-                                     "inforunbd": Failure.INFEASIBLE}
+                                     "inforunbd": Failure.INFEASIBLE,
+                                     "unbounded": Failure.UNBOUNDED}
 """Failure categories of SCIP's statuses (any other unsuccessful status is an error)."""
 
 

@@ -1,0 +1,86 @@
+"""Failure categories read the same from every backend's wording (``failure_category``), and the
+backends that report why they failed say infeasible / unbounded on problems known to be so.
+
+The problems are tiny, with a known answer: ``x_1 <= -1`` and ``x_1 >= 1`` (infeasible),
+``x_1 + x_2 = 0`` and ``x_1 + x_2 = 1`` (inconsistent equalities), and
+``min x_1^2 / 2 - x_2`` with ``x_1 <= 1`` and ``x_2`` free (unbounded below: dual infeasible).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from c3bench.problems.importers import QPSOLVERS_KEYS, qp_problem
+from c3bench.problems.instance import Problem
+from c3bench.problems.names import Failure
+from c3bench.solvers import registry
+from c3bench.solvers.backends._qp_forms import failure_category
+from c3bench.solvers.base import settings_for
+
+
+@pytest.mark.parametrize(("status", "category"), [
+    ("primal infeasible", Failure.INFEASIBLE),  # OSQP, QPALM
+    ("PrimalInfeasible", Failure.INFEASIBLE),  # Clarabel
+    ("PIQP_PRIMAL_INFEASIBLE", Failure.INFEASIBLE),
+    ("infeasible_inaccurate", Failure.INFEASIBLE),  # CVXPY
+    ("gurobi: infeasible_or_unbounded", Failure.INFEASIBLE),
+    ("scip: inforunbd", Failure.INFEASIBLE),
+    ("dual infeasible", Failure.UNBOUNDED),  # OSQP, QPALM
+    ("DualInfeasible", Failure.UNBOUNDED),  # Clarabel
+    ("AlmostDualInfeasible", Failure.UNBOUNDED),
+    ("PROXQP_DUAL_INFEASIBLE", Failure.UNBOUNDED),
+    ("unbounded_inaccurate", Failure.UNBOUNDED),  # CVXPY
+    ("Initial QP could not be solved due to unboundedness!", Failure.UNBOUNDED),  # qpOASES
+    ("time limit reached", Failure.TIMEOUT),
+    ("MaxIterations", Failure.ERROR),
+    ("not solved (no status kept by qpsolvers)", Failure.ERROR),
+])
+def test_failure_category_reads_every_wording_alike(status: str, category: Failure) -> None:
+    assert failure_category(status) == category
+
+
+def _qp(name: str, **arrays: np.ndarray) -> Problem:
+    return qp_problem(name, {key: arrays.get(key) for key in QPSOLVERS_KEYS}, "test")
+
+
+INFEASIBLE = _qp("infeasible", P=np.eye(2), q=np.zeros(2), G=np.array([[1.0, 0.0], [-1.0, 0.0]]),
+                 h=np.array([-1.0, -1.0]))
+INCONSISTENT = _qp("inconsistent", P=np.eye(2), q=np.zeros(2), A=np.ones((2, 2)),
+                   b=np.array([0.0, 1.0]))
+UNBOUNDED = _qp("unbounded", P=np.diag([1.0, 0.0]), q=np.array([0.0, -1.0]),
+                G=np.array([[1.0, 0.0]]), h=np.array([1.0]))
+
+REPORTING = ("osqp", "clarabel", "piqp", "proxqp_dense", "qpalm", "scs", "cvxpy_clarabel")
+"""Backends whose status says why they failed (qpsolvers keeps no status of daqp and HiGHS;
+quadprog refuses a P that is not positive definite before it could find the problem
+unbounded)."""
+
+
+def _solve(name: str, problem: Problem) -> tuple[bool, Failure, str]:
+    ok, reason = registry.get(name).availability()
+    if not ok:
+        pytest.skip(f"{name} unavailable: {reason}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = registry.solve(name, problem, settings_for("mid_accuracy", time_limit=30.0))
+    return result.found, Failure(result.failure), result.status
+
+
+@pytest.mark.parametrize("name", REPORTING)
+@pytest.mark.parametrize(("problem", "category"), [(INFEASIBLE, Failure.INFEASIBLE),
+                                                   (UNBOUNDED, Failure.UNBOUNDED)],
+                         ids=["infeasible", "unbounded"])
+def test_a_backend_that_reports_why_says_infeasible_or_unbounded(
+        name: str, problem: Problem, category: Failure) -> None:
+    found, failure, status = _solve(name, problem)
+    assert not found and failure == category, status
+
+
+@pytest.mark.parametrize("problem", [INFEASIBLE, INCONSISTENT], ids=["infeasible", "equalities"])
+def test_quadprog_inconsistent_constraints_are_infeasible(problem: Problem) -> None:
+    found, failure, status = _solve("quadprog", problem)
+    assert not found and failure == Failure.INFEASIBLE
+    assert status == "quadprog: constraints are inconsistent, no solution"
