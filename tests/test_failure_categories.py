@@ -53,10 +53,11 @@ INCONSISTENT = _qp("inconsistent", P=np.eye(2), q=np.zeros(2), A=np.ones((2, 2))
 UNBOUNDED = _qp("unbounded", P=np.diag([1.0, 0.0]), q=np.array([0.0, -1.0]),
                 G=np.array([[1.0, 0.0]]), h=np.array([1.0]))
 
-REPORTING = ("osqp", "clarabel", "piqp", "proxqp_dense", "qpalm", "scs", "cvxpy_clarabel")
-"""Backends whose status says why they failed (qpsolvers keeps no status of daqp and HiGHS;
-quadprog refuses a P that is not positive definite before it could find the problem
-unbounded)."""
+REPORTING = ("osqp", "clarabel", "piqp", "proxqp_dense", "qpalm", "scs", "cvxpy_clarabel",
+             "daqp")
+"""Backends whose status says why they failed on both problems (DAQP's exit flag recorded as
+qpsolvers receives it; HiGHS claims the unbounded problem optimal, and quadprog refuses a P that
+is not positive definite before it could find it unbounded: both tested apart)."""
 
 
 def _solve(name: str, problem: Problem) -> tuple[bool, Failure, str]:
@@ -84,3 +85,30 @@ def test_quadprog_inconsistent_constraints_are_infeasible(problem: Problem) -> N
     found, failure, status = _solve("quadprog", problem)
     assert not found and failure == Failure.INFEASIBLE
     assert status == "quadprog: constraints are inconsistent, no solution"
+
+
+def test_highs_says_infeasible_and_its_optimal_claim_on_an_unbounded_qp_is_no_success() -> None:
+    found, failure, status = _solve("highs", INFEASIBLE)
+    assert (found, failure, status) == (False, Failure.INFEASIBLE, "HiGHS: Infeasible")
+    found, failure, status = _solve("highs", UNBOUNDED)
+    assert status.startswith("HiGHS: ")  # its own claim, kept as the status
+
+
+def test_the_status_probe_passes_the_call_through_and_restores_the_solver() -> None:
+    daqp = pytest.importorskip("daqp")
+    highspy = pytest.importorskip("highspy")
+    from c3bench.solvers.backends._qpsolvers_status import StatusProbe
+
+    solve, had_status = daqp.solve, "getModelStatus" in vars(highspy.Highs)
+    H, f = np.eye(2), np.array([1.0, -1.0])
+    A, upper = np.ones((1, 2)), np.array([0.5])
+    expected = daqp.solve(H, f, A, upper)
+    probe = StatusProbe("daqp")
+    with probe.watching():
+        got = daqp.solve(H, f, A, upper)
+    assert np.array_equal(got[0], expected[0]) and got[2] == expected[2] == 1
+    assert probe.status(True) == "daqp: optimal (exit flag 1)"
+    assert daqp.solve is solve
+    with StatusProbe("highs").watching():
+        pass
+    assert ("getModelStatus" in vars(highspy.Highs)) == had_status

@@ -20,7 +20,9 @@ benchmark); missing dual blocks become zeros of the right size. How each solver 
 ============  =============================================================================
 
 DAQP, PIQP and quadprog take no time limit here; the registry enforces it. ``found`` is
-qpsolvers' verdict; the status is the solver's own where qpsolvers keeps it.
+qpsolvers' verdict; the status is the solver's own: where qpsolvers keeps it (PIQP, QPALM,
+SCS) or recorded as qpsolvers receives it (DAQP's exit flag, HiGHS's model status, quadprog's
+message: :mod:`._qpsolvers_status`).
 ``setup_time`` includes qpsolvers' conversion (the call's time minus the solver's own
 ``solve_time`` where qpsolvers reports it).
 
@@ -75,6 +77,7 @@ from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import Failure
 from c3bench.solvers.backends._qp_forms import QPBackend, failure_category, qp_result
+from c3bench.solvers.backends._qpsolvers_status import QUADPROG_INCONSISTENT, StatusProbe
 from c3bench.solvers.backends._warm_vectors import full_bounds
 from c3bench.solvers.base import Result, Settings, WarmStart, require_module
 from c3bench.solvers.output import quiet_stdout
@@ -144,19 +147,14 @@ def _qpsolvers_iterations(solver: str, extras: dict[str, Any]) -> int | None:
     return None
 
 
-QUADPROG_INCONSISTENT = "constraints are inconsistent, no solution"
-"""quadprog's own message for infeasible constraints (its ``ValueError``); qpsolvers drops it
-silently and warns with any other ``ValueError``'s message."""
-
-
 def _qpsolvers_status(solver: str, found: bool, extras: dict[str, Any],
-                      warned: Sequence[str] = ()) -> str:
-    """The solver's own status text where qpsolvers keeps it; for quadprog, which qpsolvers
-    keeps no status of, its ``ValueError``'s message: the one qpsolvers warned with, else
-    :data:`QUADPROG_INCONSISTENT` (the only ``ValueError`` qpsolvers does not warn about)."""
-    if solver == "quadprog" and not found:
-        errors = [text for text in warned if "quadprog raised a ValueError" in text]
-        return errors[0] if errors else f"quadprog: {QUADPROG_INCONSISTENT}"
+                      probe: StatusProbe | None = None, warned: Sequence[str] = ()) -> str:
+    """The solver's own status: where qpsolvers keeps it (PIQP, QPALM, SCS), else what the
+    ``probe`` recorded (DAQP's exit flag, HiGHS's model status, quadprog's message:
+    :mod:`._qpsolvers_status`)."""
+    recorded = probe.status(found, warned) if probe is not None else None
+    if recorded is not None:
+        return recorded
     try:
         if solver in ("piqp", "qpalm"):
             return str(extras["info"].status).split(".")[-1]
@@ -215,8 +213,10 @@ class QpsolversBackend(QPBackend):
             if warm_start is not None and warm_start.x is not None:
                 initvals = np.asarray(warm_start.x, dtype=float)
             options = self.options(settings)
+        probe = StatusProbe(self.spec.solver)
         try:
-            with watch.lap("call"), warnings.catch_warnings(record=True) as caught:
+            with watch.lap("call"), warnings.catch_warnings(record=True) as caught, \
+                    probe.watching():
                 warnings.simplefilter("always")
                 solution = qpsolvers.solve_problem(qp, solver=self.spec.solver,
                                                    initvals=initvals, **options)
@@ -231,7 +231,7 @@ class QpsolversBackend(QPBackend):
             inner_solve = watch.get("call")
         extras = solution.extras if isinstance(solution.extras, dict) else {}
         found = bool(solution.found)
-        status = _qpsolvers_status(self.spec.solver, found, extras,
+        status = _qpsolvers_status(self.spec.solver, found, extras, probe,
                                    [str(warning.message) for warning in caught])
         duals = None
         if solution.x is not None:
