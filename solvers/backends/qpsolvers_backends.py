@@ -217,7 +217,8 @@ class QpsolversBackend(QPBackend):
         try:
             with watch.lap("call"), warnings.catch_warnings(record=True) as caught, \
                     probe.watching():
-                warnings.simplefilter("always")
+                # quadprog's message comes as a warning (_qpsolvers_status); others: ignored
+                warnings.simplefilter("always" if self.spec.solver == "quadprog" else "ignore")
                 solution = qpsolvers.solve_problem(qp, solver=self.spec.solver,
                                                    initvals=initvals, **options)
         except (qpsolvers.QPError, ValueError) as error:
