@@ -15,7 +15,7 @@ from conftest import push_batches, random_lcs_problem
 
 from c3bench.problems.errors import InputError
 from c3bench.problems.lcs import LCSBatch
-from c3bench.problems.mpc import MPC
+from c3bench.problems.mpc import MPC, HorizonLayout
 from c3bench.problems.names import Precision
 from c3bench.solvers.admm import compiled_kernels as kernels
 from c3bench.solvers.admm import compiled_passes as passes
@@ -169,6 +169,32 @@ def test_flop_counts_of_a_dense_block(nx: int, nv: int) -> None:
     assert pattern.nonzeros == nx
     assert kernels.factor_flops(nx, nv, pattern) < kernels.factor_flops(nx, nv)
     assert passes.solve_flops(nx, nv, 2, pattern) < passes.solve_flops(nx, nv, 2)
+
+
+def test_executed_flops_of_a_planned_step_count_every_part(push: SimpleNamespace) -> None:
+    """A whole planned step counts the batch's M^T M, every group's factorisations, every
+    iteration with the shared-input mean, and the dual rescalings between iterations."""
+    from c3bench.solvers.admm.loop import plan_ratios
+
+    mpc, x0, lcs = push.mpc, push.x0, push.batches[3]
+    plan = FastC3Plus(mpc).planned_rhos()
+    assert plan is not None
+    kernel = CompiledC3PlusKernel(mpc)
+    kernel.start(lcs, x0, np.full(3, 1 / 3), True, plan)
+    delta, w = _warm_iterates(lcs, mpc.horizon, x0, 7)
+    layout = HorizonLayout(lcs.nx, lcs.nlam, lcs.nu, lcs.nlam, mpc.horizon)
+    run = kernel.run_plan(plan, plan_ratios(layout, plan, True, np.float64), delta, w)
+    assert run.failure is None and run.completed == len(plan)
+    n, T, ns = delta.shape
+    nx, nlam, nu = lcs.nx, lcs.nlam, lcs.nu
+    nv, N = nlam + nu, len(plan)
+    pattern = kernel.structure
+    lane = T * kernels.factor_flops(nx, nv, pattern) + kernels.setup_flops(nx, nv)
+    iteration = T * passes.solve_flops(nx, nv, nlam, pattern) + 2 * nu * T
+    expected = n * (kernels.assemble_flops(nx, nlam, nu) + N * lane + N * iteration
+                    + (N - 1) * T * ns)
+    assert kernel.flops == expected
+    assert kernels.assemble_flops(nx, nlam, nu) == nlam * (nx + nv) * (nx + nv + 1)
 
 
 def test_ridge_and_no_jacobi_match_the_reference(push: SimpleNamespace) -> None:

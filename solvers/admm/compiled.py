@@ -159,9 +159,12 @@ class CompiledC3PlusKernel:
         self._structure: kernels.Structure | None = None  # the batch's, set by start()
         self._lane_flops = self._sample_flops = 0
         self.flops = 0.0
-        """Floating-point operations executed since the last :meth:`start` (factorisations:
-        :func:`kernels.factor_flops` and :func:`kernels.setup_flops` per rho value and sample;
-        iterations: :func:`passes.solve_flops` per sample), over the structural nonzeros."""
+        """Floating-point operations executed since the last :meth:`start` (the batch's
+        :func:`kernels.assemble_flops` per sample; factorisations: :func:`kernels.factor_flops`
+        and :func:`kernels.setup_flops` per rho value and sample; iterations:
+        :func:`passes.solve_flops` per sample, with shared inputs ``2 nu`` more per sample and
+        step for the weighted mean; a planned run's dual rescalings, one product per entry),
+        over the structural nonzeros."""
         self._shared = False
         self._solve_compiled = False
         self._generated = GeneratedCode()
@@ -251,7 +254,7 @@ class CompiledC3PlusKernel:
         else:
             ok = self._timed(passes.solve_project, *args)
             self._solve_compiled = True
-        self.flops += shape[0] * self._sample_flops
+        self.flops += shape[0] * self._iteration_flops()
         if not ok:
             raise KernelFailure("non-finite QP solution", f"rho={dict(rho)}", True)
         return out[0], z_terminal, out[1], out[2]
@@ -287,7 +290,9 @@ class CompiledC3PlusKernel:
         attempted = min(completed + (code != 0), len(plan))  # the failed one included
         factorised = min(-(-attempted // group) * group, len(plan))  # whole groups
         solved = completed + (code == compiled_plan.NON_FINITE)
-        self.flops += n * (factorised * self._lane_flops + solved * self._sample_flops)
+        rescaled = min(completed, len(plan) - 1)  # run_plan rescales after all but the last
+        self.flops += n * (factorised * self._lane_flops + solved * self._iteration_flops()
+                           + rescaled * shape[1] * shape[2])
         failure = None
         if code == compiled_plan.FACTORISATION_FAILED:
             failure = KernelFailure("QP factorisation failed",
@@ -300,6 +305,14 @@ class CompiledC3PlusKernel:
                        terminal if done else None, failure)
 
     # -- internals -----------------------------------------------------------------------------
+    def _iteration_flops(self) -> int:
+        """Flops of one iteration per sample: :func:`passes.solve_flops` (in
+        ``_sample_flops``) and, with shared inputs over several samples, the weighted mean of
+        ``u``: a multiply-add per sample, input and step."""
+        n, _, _, nu = self._shape
+        mean = 2 * nu * self.mpc.horizon if self._shared and n > 1 else 0
+        return self._sample_flops + mean
+
     def _checked(self, array: np.ndarray) -> np.ndarray:
         """``delta`` or ``w`` in the working precision, C-contiguous, of the step's shape."""
         if array.dtype != self.dtype or not array.flags.c_contiguous:
@@ -328,6 +341,7 @@ class CompiledC3PlusKernel:
             self._stacked.clear()
             self._plan_stacked = None
         a = self._arrays
+        self.flops += n * kernels.assemble_flops(nx, nlam, nu)
         mask = np.empty((nx, ny + 1), dtype=np.bool_)
         self._timed(kernels.assemble, lcs.A, lcs.B, lcs.D, lcs.d, lcs.E, lcs.F, lcs.H, lcs.c,
                     self._zero, a["A"], a["Bv"], a["d"], a["Mc"], a["Mt"], a["MtM"], mask)

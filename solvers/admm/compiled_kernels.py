@@ -85,7 +85,8 @@ from c3bench.solvers.admm.compiled_lanes import (
     store_step,
 )
 
-__all__ = ["LANE_BLOCK", "LANE_PAD", "Structure", "assemble", "factor_flops", "factorize_batch",
+__all__ = ["LANE_BLOCK", "LANE_PAD", "Structure", "assemble", "assemble_flops", "factor_flops",
+           "factorize_batch",
            "jit", "no_steps", "padded_lanes", "setup_flops", "structure", "work_lanes"]
 
 def factor_flops(nx: int, nv: int, pattern: Structure | None = None) -> int:
@@ -102,6 +103,13 @@ def factor_flops(nx: int, nv: int, pattern: Structure | None = None) -> int:
     mads += sum(int(counts[a]) * (nx - a) for a in range(nx))  # A^T S A
     mads += nv * nx * (nx + 1) // 2  # Y^T Y
     return 2 * mads + nv * nx + 2 * nv  # Y's scaling, the pivots' square roots and inverses
+
+
+def assemble_flops(nx: int, nlam: int, nu: int) -> int:
+    """Floating-point operations of one sample in :func:`assemble`: ``M^T M`` over the upper
+    triangle, a multiply-add per row of ``M`` (the rest are copies)."""
+    ny = nx + nlam + nu
+    return 2 * nlam * ny * (ny + 1) // 2
 
 
 def setup_flops(nx: int, nv: int) -> int:
