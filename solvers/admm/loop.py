@@ -412,8 +412,9 @@ def _output(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any, 
         return np.array(fallback, dtype=float), None, ok, status
     u_slice = kernel.layout.index(0, "u")
     source = delta if options.output == Output.DELTA else z_steps
-    first = np.asarray(source)[:, 0, u_slice].astype(np.float64)
-    u_raw = inputs.weights @ first if inputs.shared_inputs else first
+    first = np.asarray(source)[:, 0, u_slice]
+    # the float64 weights' product promotes a float32 ``first`` exactly, as astype would
+    u_raw = inputs.weights @ first if inputs.shared_inputs else first.astype(np.float64)
     if not np.isfinite(u_raw).all():
         return np.array(fallback, dtype=float), None, False, "non-finite input"
-    return np.minimum(np.maximum(u_raw, -force_limit), force_limit), u_raw, ok, status
+    return np.clip(u_raw, -force_limit, force_limit), u_raw, ok, status
