@@ -73,8 +73,8 @@ SOLVE = "solve"
 WARM_UPDATE = "warm_update"
 """Diagnostics key of a warm solve: 1.0 when it went through the solver's update API
 (:class:`UpdatableBackend`), 0.0 when it was emulated by a full solve with the initial guess."""
-WARM_EMULATED = ("emulated: no update API reachable, so a warm cell pays setup + solve with the "
-                 "initial guess, as a cold one does")
+WARM_EMULATED = ("emulated: c3bench drives this solver without an update API, so a warm cell "
+                 "pays setup + solve with the initial guess, as a cold one does")
 """``warm_support`` of a backend that is not an :class:`UpdatableBackend`."""
 
 

@@ -67,6 +67,13 @@ def _block(matrix: np.ndarray | None, n: int) -> sp.csc_matrix:
     return sp.csc_matrix((0, n)) if matrix is None else sp.csc_matrix(matrix)
 
 
+def _dense_block(matrix: Any, n: int) -> np.ndarray:
+    if matrix is None:
+        return np.zeros((0, n))
+    array = matrix.toarray() if sp.issparse(matrix) else matrix
+    return np.asarray(array, dtype=float).reshape(-1, n)
+
+
 @dataclass
 class TwoSidedForm:
     """``lower <= matrix z <= upper`` with ``matrix = [A; G; I_S]``.
@@ -80,7 +87,7 @@ class TwoSidedForm:
     Attributes
     ----------
     matrix
-        Stacked constraint matrix (CSC).
+        Stacked constraint matrix (CSC; a dense array when built with ``dense=True``).
     lower, upper
         Row bounds (``+-inf`` where one-sided).
     n, n_eq, n_ineq
@@ -91,7 +98,7 @@ class TwoSidedForm:
         The full bound vectors (``+-inf`` where absent).
     """
 
-    matrix: sp.csc_matrix
+    matrix: Any
     lower: np.ndarray
     upper: np.ndarray
     n: int
@@ -102,17 +109,25 @@ class TwoSidedForm:
     ub: np.ndarray
 
     @classmethod
-    def from_problem(cls, problem: Problem, bounds_as_rows: bool = True) -> TwoSidedForm:
-        """Stack ``problem``'s constraints (see the class docstring)."""
+    def from_problem(cls, problem: Problem, bounds_as_rows: bool = True,
+                     dense: bool = False) -> TwoSidedForm:
+        """Stack ``problem``'s constraints (see the class docstring); ``dense``: as a dense
+        array, for a dense solver (no detour through a sparse format)."""
         n = problem.n
         lb, ub = _bounds(problem)
         bounded = (np.flatnonzero(np.isfinite(lb) | np.isfinite(ub)) if bounds_as_rows
                    else np.zeros(0, dtype=np.int64))
-        identity = sp.csc_matrix((np.ones(bounded.size), (np.arange(bounded.size), bounded)),
-                                 shape=(bounded.size, n))
         b = np.zeros(0) if problem.b is None else problem.b
         h = np.zeros(0) if problem.h is None else problem.h
-        matrix = sp.vstack([_block(problem.A, n), _block(problem.G, n), identity], format="csc")
+        if dense:
+            matrix: Any = np.vstack([_dense_block(problem.A, n), _dense_block(problem.G, n),
+                                     np.eye(n)[bounded]])
+        else:
+            identity = sp.csc_matrix((np.ones(bounded.size), (np.arange(bounded.size),
+                                                               bounded)),
+                                     shape=(bounded.size, n))
+            matrix = sp.vstack([_block(problem.A, n), _block(problem.G, n), identity],
+                               format="csc")
         lower = np.concatenate([b, np.full(h.size, -np.inf), lb[bounded]])
         upper = np.concatenate([b, h, ub[bounded]])
         return cls(matrix, lower, upper, n, problem.n_eq, problem.n_ineq, bounded, lb, ub)

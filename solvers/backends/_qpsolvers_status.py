@@ -83,6 +83,17 @@ class StatusProbe:
             return None
         return None
 
+    def info(self) -> dict[str, Any] | None:
+        """DAQP's ``info`` of the last recorded call (times in seconds, ``iterations``), or
+        ``None``."""
+        if self.solver != "daqp" or not self.answers:
+            return None
+        try:
+            info = self.answers[-1][1][3]
+        except (IndexError, TypeError):
+            return None
+        return info if isinstance(info, dict) else None
+
     def status(self, found: bool, warned: Sequence[str] = ()) -> str | None:
         """The solver's own status of the last call, or ``None`` when nothing was recorded
         (``warned``: the messages qpsolvers warned with, for quadprog)."""

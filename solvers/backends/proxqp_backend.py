@@ -78,7 +78,7 @@ class ProxQPBackend(QPBackend):
         """A ProxQP model initialised on ``problem`` (``warm``: it will be given a guess)."""
         from proxsuite import proxqp
 
-        form = TwoSidedForm.from_problem(problem)
+        form = TwoSidedForm.from_problem(problem, dense=not self.sparse)
         eq, ineq = form.rows("eq"), form.rows("ineq")
         n_in = form.n_rows - form.n_eq
         module = proxqp.sparse if self.sparse else proxqp.dense
@@ -89,7 +89,7 @@ class ProxQPBackend(QPBackend):
             A_eq: Any = form.matrix[eq]
             C: Any = form.matrix[ineq]
         else:
-            H, A_eq, C = problem.P, form.matrix[eq].toarray(), form.matrix[ineq].toarray()
+            H, A_eq, C = problem.P, form.matrix[eq], form.matrix[ineq]
         if warm:
             qp.settings.initial_guess = proxqp.InitialGuess.WARM_START
         qp.init(H, problem.q, A_eq if form.n_eq else None,
