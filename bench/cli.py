@@ -159,7 +159,9 @@ def cmd_run(args: argparse.Namespace) -> int:
           + (f", {summary.warm_without_reference} warm cells without a reference start"
              if summary.warm_without_reference else "")
           + (f", {summary.stale_removed} stale cells of changed instances removed"
-             if summary.stale_removed else ""))
+             if summary.stale_removed else "")
+          + (f", {summary.adopted} rows of the stored table (no cell files) kept"
+             if summary.adopted else ""))
     print(f"solver output: {store.SuitePaths(summary.root).solver_log}")
     if not args.no_report and (summary.ran or summary.already_done or not summary.missing):
         print(f"report: {write_report(summary.suite, args.results)}")

@@ -95,6 +95,9 @@ class RunSummary:
     stale_removed: int = 0
     missing: int = 0
     missing_reasons: list[str] = field(default_factory=list)
+    adopted: int = 0
+    """Rows of a results table found without its cell files (a fresh checkout of committed
+    results) that this run did not plan and kept as cells (:func:`_adopt_table`)."""
 
 
 @dataclass
@@ -274,6 +277,33 @@ def identify_instances(paths: store.SuitePaths, instances: InstanceSet) -> dict[
         paths.root.mkdir(parents=True, exist_ok=True)
         save_identities(paths.identities, {**known, **current})
     return {name: identity.id for name, identity in current.items()}
+
+
+def _adopt_table(paths: store.SuitePaths, planned: set[tuple[str, ...]]) -> int:
+    """Keep the rows of a results table that has no cell files (``cells/`` is never
+    committed, so a fresh checkout of committed results has only ``results.parquet``): the
+    rows of cells this run does not plan become cell files, so that the consolidated table
+    keeps them; the planned cells are measured again (a fresh checkout's run measures this
+    machine). Without this, running one solver on a fresh checkout replaced the committed
+    table of 29 solvers by that solver's rows. Returns the rows adopted.
+
+    Raises :class:`InputError` when the table cannot be read (another schema version, damaged):
+    it is never replaced silently.
+    """
+    if not paths.parquet.exists() or (paths.cells.is_dir() and
+                                      any(paths.cells.glob("*.json"))):
+        return 0
+    try:
+        table = store.read_results(paths.parquet)
+    except (InputError, OSError, ValueError) as error:
+        raise InputError(f"{paths.parquet}: {error}; it has no cell files to rebuild it "
+                         f"from, so this run would replace it: move it away first") from error
+    adopted = 0
+    for row in table.to_dict("records"):
+        if store.cell_key(row) not in planned:
+            store.write_cell(paths, row)
+            adopted += 1
+    return adopted
 
 
 def _sweep_stored(paths: store.SuitePaths, hashes: dict[str, str],
@@ -468,6 +498,7 @@ def run_suite(
                                  preload=tuple(preload), suite=name)
             _write_run_info(paths, plan, name, jobs, scheduler, options, settings, precisions,
                             starts, sequence_scope)
+            adopted = _adopt_table(paths, {cell.key for cell in plan.cells})
             done, stale = _sweep_stored(paths, hashes, rerun)
             todo = [cell for cell in plan.cells if cell.key not in done]
             already = len(plan.cells) - len(todo)
@@ -493,4 +524,4 @@ def run_suite(
                 store.consolidate(paths)
     return RunSummary(name, paths.root, len(plan.cells), already, tally.ran, tally.failed,
                       False, plan.skipped_solvers, tally.warm_missing, tally.references,
-                      stale, tally.missing, tally.reasons)
+                      stale, tally.missing, tally.reasons, adopted)

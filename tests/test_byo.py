@@ -17,6 +17,7 @@ from typing import Any
 
 import clarabel
 import numpy as np
+import pandas as pd
 import pytest
 import qpsolvers
 import scipy.sparse as sp
@@ -140,6 +141,33 @@ def test_reimported_change_reruns_only_its_cells(tmp_path: Path,
         clarabel_optimum(changed)[0], rel=1e-3, abs=1e-6)
     assert rows.loc["second", "objective"].to_numpy() == pytest.approx(
         clarabel_optimum(second)[0], rel=1e-3, abs=1e-6)
+
+
+def test_a_table_without_cell_files_keeps_the_rows_a_run_does_not_plan(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A fresh checkout has results.parquet but no cells/ (never committed): running one
+    solver there measures that solver again and keeps every other solver's rows."""
+    import shutil
+
+    suite, run = _import_and_run(tmp_path, capsys, {"first": external_qp(5),
+                                                   "second": external_qp(6)})
+    before = store.read_results(suite)
+    shutil.rmtree(suite / "cells")
+    one = tuple("osqp" if value == SOLVERS else value for value in run)
+    code, out, err = _cli(capsys, *one)
+    assert code == 0, err
+    assert "2 cells planned, 0 already stored, 2 run" in out and "6 rows of the stored" in out
+    after = store.read_results(suite)
+    assert len(after) == len(before) == 8
+    kept = ["cell_id", "solver", "objective", "setup_time", "solve_time"]
+    others = before[before.solver != "osqp"][kept].reset_index(drop=True)
+    pd.testing.assert_frame_equal(after[after.solver != "osqp"][kept].reset_index(drop=True),
+                                  others)
+    (suite / "results.parquet").write_bytes(b"not parquet")  # unreadable: never replaced
+    shutil.rmtree(suite / "cells")
+    code, _, err = _cli(capsys, *one)
+    assert code == 2 and "results.parquet" in err and "move it away" in err
+    assert (suite / "results.parquet").read_bytes() == b"not parquet"
 
 
 def test_export_reads_back_in_qpsolvers(tmp_path: Path,
