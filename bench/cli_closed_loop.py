@@ -76,6 +76,9 @@ def metric_lines(metrics: Any) -> list[str]:
         + ("never" if metrics.settling_time != metrics.settling_time
            else f"at {metrics.settling_time:.2f} s")
         + f"), steady offset {metrics.steady_offset:+.3f} rad",
+        "pivot slip        "
+        + ("not measured" if metrics.pivot_slip != metrics.pivot_slip
+           else f"{1e2 * metrics.pivot_slip:.1f} cm (the far bottom edge along the table)"),
         "contact           "
         + ("no contact" if metrics.first_touch_time != metrics.first_touch_time
            else f"first touch {metrics.first_touch_time:.2f} s at "
@@ -194,7 +197,7 @@ def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    """Run the hyperparameter sweep (resumable) and write its failure-mode map."""
+    """Run the hyperparameter sweep (resumable) and write its outcome map."""
     from c3bench.bench.closed_loop_suite import run_cases, sweep_cases, write_report
 
     cases = sweep_cases(args.dt, args.rho_schedule, args.q_box, args.model_l, args.qp_backend)
@@ -355,9 +358,9 @@ def add_closed_loop(sub: Any) -> None:
     add_quiet(suite)
     suite.set_defaults(handler=cmd_closed_loop_suite)
 
-    sweep = sub.add_parser("sweep", help="failure-mode map: dt x rho schedule x Q_box x l",
+    sweep = sub.add_parser("sweep", help="outcome map: dt x rho schedule x Q_box x l",
                            description="C3+ over a grid of hyperparameters; the report maps "
-                                       "each combination to its failure mode.")
+                                       "each combination to its outcome (success or label).")
     add_list(sweep, "--dt", metavar="S", item=positive_float, default=SWEEP_DTS,
              help="control periods (s)")
     add_list(sweep, "--rho-schedule", metavar="SCHEDULE", choices=RHO_SCHEDULES,

@@ -65,6 +65,7 @@ from c3bench.bench.closed_loop_policy import (
     step_backends,
     step_failures,
 )
+from c3bench.bench.closed_loop_probe import GAP_RANGE, ContactProbe  # re-exported
 from c3bench.bench.closed_loop_records import (  # re-exported
     records_frame,
     render_run,
@@ -86,9 +87,6 @@ __all__ = [
     "run_summary", "simulate", "step_backends", "step_failures", "summarise", "write_run",
 ]
 
-GAP_RANGE = 10.0
-"""``distmax`` of ``mj_geomDistance`` (m): signed distances are exact below it."""
-
 FAILURE_MODES: dict[int, str] = {
     0: "success",
     1: "fast sliding past the edge",
@@ -103,7 +101,7 @@ FAILURE_MODES: dict[int, str] = {
 class FailureRules:
     """Thresholds of the failure-mode labels (see the module docstring)."""
 
-    pivot_slip: float = 0.03
+    pivot_slip: float = SuccessRules.pivot_slip  # one threshold, the success rule's
     still_angle: float = 0.05
     still_shift: float = 0.01
     tip_start: float = 0.05
@@ -130,7 +128,8 @@ class Trajectory:
 
 def cube_geometry(scene: Scene, x: np.ndarray, data: mujoco.MjData | None = None
                   ) -> dict[str, Any]:
-    """Far bottom corner, ball position in the cube frame and ball-cube distance at ``x``.
+    """Far bottom corner, ball position in the cube frame, ball-cube distance and the height
+    of the cube's lowest point above the table (``clearance``, m) at ``x``.
 
     ``data``: a scratch ``MjData`` of ``scene.model`` to work in (its positions are
     overwritten); a new one is made per call without it (about 0.4 ms, most of the cost).
@@ -144,91 +143,12 @@ def cube_geometry(scene: Scene, x: np.ndarray, data: mujoco.MjData | None = None
     rotation = data.xmat[cube].reshape(3, 3)
     ball_world = data.xpos[scene.body("ball")]
     ball_local = rotation.T @ (ball_world - data.xpos[cube])
-    gap = mujoco.mj_geomDistance(scene.model, data, scene.geom("ball"), scene.geom("cube"),
-                                 GAP_RANGE, None)
-    return {"far_corner": far, "ball_local": ball_local, "ball_gap": float(gap)}
-
-
-class ContactProbe:
-    """Running contact statistics of a control period, updated after every plant step.
-
-    After each plant step :meth:`observe` puts the plant's positions into a scratch
-    ``MjData``, runs ``mj_kinematics`` and takes the ball-cube signed distance with
-    ``mj_geomDistance``, the same function as :func:`cube_geometry` (1-6 us per plant step
-    with the bookkeeping on the 2-core VM, against about 4 us for the plant step), and
-    keeps, per period, the quantities of
-    :class:`~c3bench.bench.closed_loop_metrics.PlantContact`. Planar scene: the impact speed
-    is the ball's velocity minus that of the cube's material point at the ball's centre,
-    ``(v_x + omega r_z, v_z - omega r_x)`` with ``r`` from the cube centre to the ball's
-    (theta about +y).
-    """
-
-    def __init__(self, scene: Scene, contact_gap: float, away_gap: float) -> None:
-        self.scene = scene
-        self.model = scene.model
-        self.data = mujoco.MjData(scene.model)
-        self.probe_qpos = self.data.qpos
-        self.qpos, self.qvel = self.probe_qpos, self.data.qvel  # until :meth:`watch`
-        self.ball, self.cube = scene.geom("ball"), scene.geom("cube")
-        self.height_index = int(scene.ball_position_indices[-1])
-        self.height_offset = scene.config.scene.ball_radius + scene.config.scene.table_height
-        self.step = float(scene.model.opt.timestep)
-        self.contact_gap, self.away_gap = float(contact_gap), float(away_gap)
-        self.periods: list[tuple[float, float, int, int, float, float]] = []
-        self.start = 0.0
-        self.begin(0.0)
-
-    def begin(self, start: float) -> None:
-        """Start a control period at time ``start`` (s)."""
-        self.start = start
-        self.min_gap = self.min_height = math.inf
-        self.touching = self.away = 0
-        self.touch_time = self.touch_speed = math.nan
-
-    def watch(self, data: mujoco.MjData) -> None:
-        """Observe the plant whose ``MjData`` is ``data`` (its arrays' views are kept)."""
-        self.qpos, self.qvel = data.qpos, data.qvel
-
-    def observe(self, index: int) -> None:
-        """Take the watched plant's state after the period's ``index``-th plant step (from
-        1)."""
-        qpos = self.qpos
-        self.probe_qpos[:] = qpos
-        mujoco.mj_kinematics(self.model, self.data)
-        gap = mujoco.mj_geomDistance(self.model, self.data, self.ball, self.cube, GAP_RANGE,
-                                     None)
-        if gap < self.min_gap:
-            self.min_gap = gap
-        height = float(qpos[self.height_index]) - self.height_offset
-        if height < self.min_height:
-            self.min_height = height
-        if gap <= self.contact_gap:
-            self.touching += 1
-            if self.touching == 1:
-                self.touch_time = self.start + index * self.step
-                self.touch_speed = self._relative_speed(qpos, self.qvel)
-        if gap > self.away_gap:
-            self.away += 1
-
-    @staticmethod
-    def _relative_speed(qpos: np.ndarray, qvel: np.ndarray) -> float:
-        r_x, r_z = qpos[3] - qpos[0], qpos[4] - qpos[1]
-        omega = qvel[2]
-        return math.hypot(qvel[3] - qvel[0] - omega * r_z, qvel[4] - qvel[1] + omega * r_x)
-
-    def end(self) -> None:
-        """Close the period."""
-        self.periods.append((self.min_gap, self.min_height, self.touching, self.away,
-                             self.touch_time, self.touch_speed))
-
-    def record(self) -> PlantContact:
-        """The closed periods as a :class:`PlantContact`."""
-        table = np.array(self.periods, dtype=float).reshape(len(self.periods), 6)
-        return PlantContact(
-            plant_step=self.step, contact_gap=self.contact_gap, away_gap=self.away_gap,
-            min_gap=table[:, 0], min_height=table[:, 1], contact_time=table[:, 2] * self.step,
-            away_time=table[:, 3] * self.step, touch_time=table[:, 4],
-            touch_speed=table[:, 5])
+    box = scene.geom("cube")
+    gap = mujoco.mj_geomDistance(scene.model, data, scene.geom("ball"), box, GAP_RANGE, None)
+    lowest = data.geom_xpos[box][2] - np.abs(data.geom_xmat[box][6:9]) @ \
+        scene.model.geom_size[box]
+    return {"far_corner": far, "ball_local": ball_local, "ball_gap": float(gap),
+            "clearance": float(lowest) - scene.config.scene.table_height}
 
 
 def advance(plant: Plant, u: np.ndarray, duration: float, probe: ContactProbe,
@@ -383,7 +303,8 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
     After every plant step a :class:`ContactProbe` updates the period's contact statistics
     (``Trajectory.plant``): touching at signed distance ``<= contact_gap`` (default
     :attr:`SuccessRules.contact_gap`), away at ``> away_gap`` (default
-    :attr:`FailureRules.contact_gap`).
+    :attr:`FailureRules.contact_gap`), and the cube airborne when its lowest point is more
+    than :attr:`~bench.closed_loop_labels.LabelRules.air_gap` above the table.
 
     A policy that returns a non-finite input, or raises, is a failed step: the last safe input
     is held instead and the step is counted (``ok = False``, with its ``fallback_reason``).
@@ -478,6 +399,9 @@ def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene
                          ).reshape(len(records), scene.nu)
     scratch = mujoco.MjData(scene.model)
     geometry = [cube_geometry(scene, x, scratch) for x in states]
+    half = scene.l / 2
+    over_top = [bool(g["ball_local"][2] > half and np.all(np.abs(g["ball_local"][:2]) <= half))
+                for g in geometry]  # above the top face's plane, within its extent
     return RunSignals(
         times=trajectory.times,
         angles=np.array([scene.cube_angle(x) for x in states]),
@@ -489,8 +413,9 @@ def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene
         cube_side=scene.l, plan_next=stacked("plan_next", nx),
         lcs_next=stacked("lcs_next", nx), states=states,
         angle_index=2,  # planar: theta is x[2]
-        ball_above_top=np.array([g["ball_local"][2] > scene.l / 2 for g in geometry]),
-        pivot_x=np.array([g["far_corner"][0] for g in geometry]), plant=trajectory.plant)
+        ball_above_top=np.array(over_top, dtype=bool),
+        pivot_x=np.array([g["far_corner"][0] for g in geometry]),
+        cube_clearance=np.array([g["clearance"] for g in geometry]), plant=trajectory.plant)
 
 
 def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
@@ -501,7 +426,7 @@ def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
     mode, reason = label_failure_mode(trajectory, scene, target, config.mpc.success_tolerance)
     signals = run_signals(trajectory, records, scene)
     metrics = physical_metrics(signals, target, config.mpc.success_tolerance, rules)
-    label, label_reason = physical_label(metrics, signals, target)
+    label, label_reason = physical_label(metrics, signals, target, success_rules=rules)
     final = scene.cube_angle(trajectory.states[-1])
     walls = np.array([r.info.get("wall_time", r.lcs_time + r.solve_time) for r in records])
     failed = [r for r in records if r.qp_failures]

@@ -22,6 +22,9 @@ docs/closed_loop.md.
   (``success_tolerance``) until the end, and **hold time** ``T_end - settling time`` (0 when
   the run ends outside the band); **steady offset**: the mean of ``theta - theta*`` over the
   last ``hold_time`` seconds;
+* **pivot slip**: how far the cube's far bottom corner (the edge it should tip about) moved
+  along the table, ``max |x_pivot - x_pivot(0)|`` over the recorded states (NaN when they
+  carry no pivot);
 * **maximum penetration** of the ball into the cube (``-min`` signed distance) and into the
   table (``-min (z_ball - r - table height)``) over every plant state, 0 when it never
   penetrates;
@@ -33,7 +36,9 @@ docs/closed_loop.md.
   (b) the plant's actual next state; also the same for the cube angle alone (rad).
 
 **Success** (:class:`SuccessRules`): the run lasted at least ``min_duration`` (3 s), the
-angle stayed within the band for at least ``hold_time`` (1 s) at its end, and neither
+angle stayed within the band for at least ``hold_time`` (1 s) at its end, the pivot slipped
+less than ``pivot_slip`` (3 cm: a cube that slid there was pushed along the table, not tipped
+about its edge; a run whose pivot was not measured does not succeed), and neither
 penetration (at the plant's rate) exceeded ``max_penetration`` (5 mm). **Gentle success**:
 success without passing the balance angle.
 """
@@ -65,17 +70,24 @@ class SuccessRules:
         Largest ball penetration into the cube or the table that a success allows (m).
     contact_gap
         Ball-cube signed distance at or below which the ball counts as touching (m).
+    pivot_slip
+        Slide of the pivot (the cube's far bottom corner) along the table at and beyond which
+        the run is no success (m): the cube was pushed, not tipped about its edge. The labels
+        of :mod:`bench.closed_loop_labels` call such a run ``cube slid`` with this same
+        threshold, and :class:`bench.closed_loop.FailureRules` takes it as its default.
     """
 
     hold_time: float = 1.0
     min_duration: float = 3.0
     max_penetration: float = 0.005
     contact_gap: float = 0.002
+    pivot_slip: float = 0.03
 
     def __post_init__(self) -> None:
         from c3bench.problems.errors import InputError
 
-        for name in ("hold_time", "min_duration", "max_penetration", "contact_gap"):
+        for name in ("hold_time", "min_duration", "max_penetration", "contact_gap",
+                     "pivot_slip"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -97,6 +109,7 @@ class PhysicalMetrics:
     settling_time: float
     hold_time: float
     steady_offset: float
+    pivot_slip: float
     max_cube_penetration: float
     max_table_penetration: float
     clipped_inputs: int
@@ -141,6 +154,14 @@ class PlantContact:
     touch_speed
         At that state, the ball's speed relative to the cube's material point at the ball's
         centre (m/s; NaN when none).
+    air_gap
+        Height (m) of the cube's lowest point above the table beyond which
+        :attr:`cube_air_time` counts the cube as airborne (the ``air_gap`` of the labels,
+        :class:`bench.closed_loop_labels.LabelRules`; NaN when not measured).
+    cube_clearance, cube_air_time
+        The period's largest height of the cube's lowest point above the table (m), and ``h``
+        times the number of its plant states with that height ``> air_gap`` (s). Empty for a
+        run recorded before they were measured (:attr:`CUBE_COLUMNS`).
     """
 
     plant_step: float
@@ -152,21 +173,37 @@ class PlantContact:
     away_time: np.ndarray
     touch_time: np.ndarray
     touch_speed: np.ndarray
+    air_gap: float = math.nan
+    cube_clearance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cube_air_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     COLUMNS: ClassVar[tuple[str, ...]] = (
         "min_gap", "min_height", "contact_time", "away_time", "touch_time", "touch_speed")
     """The per-period arrays (stored as ``plant_<name>`` columns of ``steps.csv``)."""
+    CUBE_COLUMNS: ClassVar[tuple[str, ...]] = ("cube_clearance", "cube_air_time")
+    """The per-period arrays of the cube's height (``plant_<name>`` columns too), both
+    present or both empty."""
 
     def __post_init__(self) -> None:
         lengths = {np.shape(getattr(self, name)) for name in self.COLUMNS}
         if len(lengths) != 1 or len(next(iter(lengths))) != 1:
             raise ValueError(f"PlantContact arrays must be 1-D of one length, got {lengths}")
+        cube = {np.shape(getattr(self, name)) for name in self.CUBE_COLUMNS}
+        if cube != {(0,)} and cube != lengths:
+            raise ValueError(f"PlantContact's cube arrays must be empty or of the others' "
+                             f"shape {lengths}, got {cube}")
         if not (math.isfinite(self.plant_step) and self.plant_step > 0):
             raise ValueError(f"plant_step must be > 0, got {self.plant_step!r}")
 
     def count(self, seconds: float) -> int:
         """``seconds`` as a whole number of plant steps."""
         return round(seconds / self.plant_step)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The per-period arrays this record holds (:attr:`COLUMNS`, and
+        :attr:`CUBE_COLUMNS` when measured)."""
+        return self.COLUMNS + (self.CUBE_COLUMNS if self.cube_air_time.size else ())
 
 
 @dataclass(frozen=True)
@@ -196,10 +233,12 @@ class RunSignals:
         The recorded states (N x nx).
     angle_index
         Index of the cube angle in the state.
-    ball_above_top, pivot_x
-        Per state (N, or empty when not measured): the ball centre above the cube's top face
-        in the cube frame, and the x of the cube's far bottom corner (m); for the labels of
-        :mod:`bench.closed_loop_labels`.
+    ball_above_top, pivot_x, cube_clearance
+        Per state (N, or empty when not measured): the ball centre over the cube's top face
+        (in the cube frame: above the top face's plane and within its extent), the x of the
+        cube's far bottom corner (m; the pivot slip of the success rule, which a run without
+        it cannot pass) and the height of the cube's lowest point above the table (m); for
+        the labels of :mod:`bench.closed_loop_labels`.
     plant
         The contact measured at every plant step, per control period (N-1; ``None`` for a
         run recorded without it: the contact metrics then use the recorded states alone).
@@ -219,6 +258,7 @@ class RunSignals:
     angle_index: int = 2
     ball_above_top: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     pivot_x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cube_clearance: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plant: PlantContact | None = None
 
 
@@ -319,6 +359,13 @@ def _penetrations(signals: RunSignals) -> tuple[float, float]:
             max(0.0, -float(np.min(np.concatenate(heights)))))
 
 
+def pivot_slip(signals: RunSignals) -> float:
+    """``max |x_pivot - x_pivot(0)|`` over the recorded states (m; NaN when the signals
+    carry no pivot)."""
+    pivot = signals.pivot_x
+    return float(np.max(np.abs(pivot - pivot[0]))) if pivot.size else math.nan
+
+
 def _settling(signals: RunSignals, target: float, band: float) -> tuple[float, float]:
     """``(settling time, hold time)``: from the first state after which the angle stays within
     the band to the end (NaN, 0 when the run ends outside it)."""
@@ -370,13 +417,15 @@ def physical_metrics(signals: RunSignals, target: float, band: float,
     clipped = int(np.sum(np.any(np.abs(signals.commanded) > signals.force_limit + 1e-9,
                                 axis=1))) if signals.commanded.size else 0
     duration = float(signals.times[-1] - signals.times[0])
+    slip = pivot_slip(signals)
     success = (duration >= rules.min_duration - 1e-9 and hold >= rules.hold_time - 1e-9
+               and slip < rules.pivot_slip  # False when not measured (NaN)
                and max(cube_pen, table_pen) <= rules.max_penetration)
     passed = peak > balance
     return PhysicalMetrics(
         peak_angle=peak, balance_angle=balance, passed_balance=passed, first_touch_time=touch,
         contact_time=contact, free_time=free, impact_speed=speed, contact_step=resolution,
         settling_time=settle,
-        hold_time=hold, steady_offset=offset, max_cube_penetration=cube_pen,
+        hold_time=hold, steady_offset=offset, pivot_slip=slip, max_cube_penetration=cube_pen,
         max_table_penetration=table_pen, clipped_inputs=clipped, **_consistency(signals),
         success=success, gentle_success=success and not passed)

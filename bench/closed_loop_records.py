@@ -25,7 +25,8 @@ def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scen
     """One row per control step: time, state, input, angle, timings, ok, NaNs, diagnostics
     and, when the run measured them, the contact of the step's control period at the plant's
     rate (``plant_min_gap``, ``plant_min_height``, ``plant_contact_time``,
-    ``plant_away_time``, ``plant_touch_time``, ``plant_touch_speed``:
+    ``plant_away_time``, ``plant_touch_time``, ``plant_touch_speed`` and, when measured, the
+    cube's height ``plant_cube_clearance``, ``plant_cube_air_time``:
     :class:`~c3bench.bench.closed_loop_metrics.PlantContact`)."""
     import pandas as pd
 
@@ -50,7 +51,7 @@ def records_frame(trajectory: Trajectory, records: list[StepRecord], scene: Scen
         row["plan_plant_error"] = float(np.linalg.norm(plan - trajectory.states[k + 1]))
         if plant is not None:
             row.update({f"plant_{name}": float(getattr(plant, name)[k])
-                        for name in plant.COLUMNS})
+                        for name in plant.columns})
         row.update(record.info)
         rows.append(row)
     return pd.DataFrame(rows)

@@ -7,7 +7,8 @@
   interval for each difference of rates).
 * :func:`write_report` (``sweep``, and any list of single cases): one row per run (success,
   gentle success, peak angle, hold time, clipped inputs, plan consistency, failure labels,
-  step times), the failure-mode map of a sweep, and ``figures/`` (angle error bars, angle
+  step times), the outcome map of a sweep (success or label per combination), and
+  ``figures/`` (angle error bars, angle
   trajectories, step-time distributions, an animation of a successful run).
 """
 
@@ -29,6 +30,7 @@ from c3bench.bench.closed_loop_figures import (
     plot_l_curve,
     plot_success_rates,
 )
+from c3bench.bench.closed_loop_metrics import SuccessRules
 from c3bench.bench.trials import TrialSummary, newcombe_interval, trial_summary
 from c3bench.problems.config import Config, load_config
 from c3bench.problems.errors import RenderUnavailable
@@ -79,20 +81,24 @@ def cell_states(directory: Path, name: str) -> np.ndarray | None:
 
 
 def plot_error_bars(frame: pd.DataFrame, path: Path, target: float) -> Path:
-    """Cube angle error at the end per configuration, coloured by success."""
+    """Cube angle error at the end per configuration, coloured by success and annotated with
+    the run's label (its failure mode ``mN`` for rows without one)."""
     figure, axis = _axes((max(6.0, 0.55 * len(frame)), 4.2))
     errors = frame["angle_error"].fillna(target).to_numpy(dtype=float)
     colours = ["tab:green" if ok else "tab:red" for ok in frame["success"].fillna(False)]
     axis.bar(range(len(frame)), errors, color=colours)
-    for index, (error, mode) in enumerate(zip(errors, frame["failure_mode"], strict=True)):
-        axis.text(index, error, f"m{int(mode)}" if mode == mode else "", ha="center",
-                  va="bottom", fontsize=7)
+    labels = frame["label"] if "label" in frame else pd.Series([""] * len(frame))
+    for index, (error, mode, label) in enumerate(zip(errors, frame["failure_mode"], labels,
+                                                     strict=True)):
+        text = label if isinstance(label, str) and label else \
+            f"m{int(mode)}" if mode == mode else ""
+        axis.text(index, error, text, ha="center", va="bottom", fontsize=6, rotation=90)
     axis.axhline(load_config().mpc.success_tolerance, color="k", linestyle="--", linewidth=0.8,
                  label="success tolerance")
     axis.set_xticks(range(len(frame)))
     axis.set_xticklabels(frame["case"], rotation=60, ha="right", fontsize=7)
     axis.set_ylabel("|theta(2 s) - theta*| (rad)")
-    axis.set_title("Cube angle error after the run (green: success; mN: failure mode)")
+    axis.set_title("Cube angle error after the run (green: success; text: the label)")
     axis.legend(fontsize=8)
     return _save(figure, path)
 
@@ -153,16 +159,17 @@ def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
              f"Plant: MuJoCo, true cube l = {config.scene.cube_side} m, target angle "
              f"{target} rad. Success: a run of at least 3 s whose angle stayed within "
              f"{config.mpc.success_tolerance} rad of the target for its last second (the "
-             "case's hold time), the ball never more than 5 mm into the cube or the table; "
-             "gentle: a success that never passed the balance angle pi/4 "
-             "(docs/closed_loop.md). Failure mode 0 is the older rule (angle within the "
-             "tolerance at the end, no pivot slip). "
+             "case's hold time), the cube's far bottom edge (the pivot) slid less than "
+             f"{100 * SuccessRules().pivot_slip:g} cm along the table, the ball never more "
+             "than 5 mm into the cube or the table; gentle: a success that never passed "
+             "the balance angle pi/4 (docs/closed_loop.md). Failure mode 0 is the older "
+             "rule (angle within the tolerance at the end, no pivot slip). "
              "Control-step times are wall-clock on this machine (2 cores, one BLAS thread), "
              "LCS build included; the reference study reported 0.06 s per step "
              "(control period 0.05 s).", ""]
     columns = ["case", "success", "gentle_success", "label", "peak_angle", "hold_time",
-               "clipped_inputs", "plan_lcs_angle_median", "angle_error", "final_angle",
-               "failure_mode", "failure_label", "median_step_time", "p95_step_time",
+               "pivot_slip", "clipped_inputs", "plan_lcs_angle_median", "angle_error",
+               "final_angle", "failure_mode", "failure_label", "median_step_time", "p95_step_time",
                "median_lcs_time", "fallback_count", "nan_count"]
     shown = frame.copy()
     for column in ("median_step_time", "p95_step_time", "median_lcs_time"):
@@ -170,7 +177,8 @@ def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
             shown[column] = shown[column] * 1e3
     lines += ["## Outcomes", "",
               "Times in ms; angles in rad (peak angle, plan vs LCS angle gap: median over "
-              "the steps); hold time in s; failure modes: 0 angle in band at the end, "
+              "the steps); hold time in s; pivot slip in m; failure modes (the older "
+              "end-time rule): 0 angle in band at the end, "
               "1 fast sliding past the edge, 2 backing off first, 3 whack then contact lost, "
               "4 no motion, 5 unlabelled, -1 the run itself failed (see `error`).", "",
               _table(shown, [c for c in columns if c in shown]), ""]
@@ -180,7 +188,7 @@ def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
         lines += ["Runs that produced no trajectory:", "",
                   _table(errors, ["case", "error"]), ""]
     if "sweep" in set(frame.get("group", [])):
-        lines += ["## Failure-mode map", "", sweep_grid(frame), ""]
+        lines += ["## Outcome map", "", sweep_grid(frame), ""]
     valid = frame[frame.get("failure_mode", -1) != -1] if "failure_mode" in frame else frame
     if len(valid):
         plot_error_bars(valid, figures / "closed_loop_error.png", target)
@@ -189,7 +197,7 @@ def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
         lines += ["## Figures", "",
                   "![error](figures/closed_loop_error.png)", "",
                   "*Cube angle error at the end of each run (rad); green bars succeeded, "
-                  "labels give the failure mode.*", "",
+                  "the text gives the run's label.*", "",
                   "![angles](figures/closed_loop_angles.png)", "",
                   "*Cube angle (rad) against time (s) for every run; dashed: the target.*", "",
                   "![times](figures/closed_loop_step_time.png)", "",
@@ -221,8 +229,28 @@ def _animation_section(directory: Path, frame: pd.DataFrame, config: Config) -> 
             f"*`{name}`: one successful run, one frame per control step ({dt:g} s).*", ""]
 
 
+def _outcome_cell(row: pd.Series) -> str:
+    """A run's outcome as the outcomes table gives it: ``success`` (``gentle success``) when
+    :mod:`bench.closed_loop_metrics`' rule holds, else its label (:mod:`bench.closed_loop_labels`;
+    ``error`` when the run itself failed), with the angle error at the end."""
+    error = str(row.get("error", "") or "")
+    label = str(row.get("label", "") or row.get("failure_label", "") or "")
+    if error or label == "error":
+        return "error"
+    success = row.get("success", False)
+    if isinstance(success, bool | np.bool_) and bool(success):
+        text = "gentle success" if bool(row.get("gentle_success", False)) else "success"
+    else:
+        text = label if label and label != "success" else "failure"
+    angle = row.get("angle_error", math.nan)
+    if isinstance(angle, int | float) and math.isfinite(angle):
+        text += f" ({angle:.2f})"
+    return text
+
+
 def sweep_grid(frame: pd.DataFrame) -> str:
-    """Markdown grid of failure-mode labels: rows ``dt / rho schedule``, columns ``Q_box / l``."""
+    """Markdown grid of the runs' outcomes (``success`` and ``label``, as in the outcomes
+    table): rows ``dt / rho schedule``, columns ``Q_box / l``."""
     sweep = frame[frame["group"] == "sweep"]
     rows = sorted({(r.dt, r.rho_schedule) for r in sweep.itertuples()})
     cols = sorted({(r.q_cube_pose, r.model_l) for r in sweep.itertuples()})
@@ -234,18 +262,11 @@ def sweep_grid(frame: pd.DataFrame) -> str:
         for q, side in cols:
             match = sweep[(sweep.dt == dt) & (sweep.rho_schedule == schedule)
                           & (sweep.q_cube_pose == q) & (sweep.model_l == side)]
-            if not len(match):
-                cells.append("-")
-                continue
-            hit = match.iloc[0]
-            mode = int(hit["failure_mode"])
-            cells.append("success" if mode == 0 else f"mode {mode}" if mode > 0 else "error")
-            if mode >= 0:
-                cells[-1] += f" ({hit['angle_error']:.2f})"
+            cells.append(_outcome_cell(match.iloc[0]) if len(match) else "-")
         lines.append(f"| {dt:g} / {schedule} | " + " | ".join(cells) + " |")
-    return ("Each cell: the failure-mode label (angle error at the end, rad).\n\n"
+    return ("Each cell: the run's outcome, success (gentle or not) or what happened instead "
+            "(the label of docs/closed_loop.md), with the angle error at the end (rad).\n\n"
             + "\n".join(lines))
-
 
 
 # --- randomized-trial suites: outcomes per configuration with intervals ----------------------
@@ -419,7 +440,9 @@ def write_trials_report(run: SuiteRun, suite: ClosedLoopSuite, trials: int,
              "mass +-20 %, friction +-25 %, plant cube side U[0.28, 0.32] m, a fresh model "
              "seed per trial for the robust controllers (docs/closed_loop.md). Success: the "
              f"angle within {config.mpc.success_tolerance} rad of the target "
-             f"{config.mpc.target_angle} rad for the last {suite.hold_time:g} s and no "
+             f"{config.mpc.target_angle} rad for the last {suite.hold_time:g} s, the "
+             "cube's far bottom edge (the pivot) slid less than "
+             f"{100 * SuccessRules().pivot_slip:g} cm along the table, and no "
              "penetration deeper than 5 mm; gentle: a success that never passed the balance "
              "angle pi/4. Rates with Wilson score 95 % intervals (E. B. Wilson, JASA 22 "
              "(1927) 209-212). " + _load_sentence(frame), ""]

@@ -13,7 +13,7 @@ Suites (:data:`CLOSED_LOOP_SUITES`, :class:`ClosedLoopSuite`, defined in
 (:mod:`bench.trials`); ``quick`` (20 trials each) and ``full`` (100).
 
 The sweep (:func:`sweep_cases`) crosses ``dt`` x rho schedule x ``Q_box`` x model ``l`` for C3+
-and reports the failure-mode label of every combination as a grid.
+and reports the outcome of every combination (success, or the run's label) as a grid.
 
 Schema of ``results.parquet`` (one row per case): ``case``, ``group``, ``controller``,
 ``qp_backend``, ``projection``, ``rho_schedule``, ``model_l``, ``samples``, ``weighting``,
@@ -80,6 +80,13 @@ from c3bench.problems.config import Config, load_config
 from c3bench.problems.instance import atomic_write_bytes
 from c3bench.problems.scene import build_scene, home_state
 from c3bench.solvers.isolation import IsolationFailed
+
+JUDGED_COLUMNS: tuple[str, ...] = ("contact_step", "pivot_slip")
+"""Columns a stored row must have to be reused: each marks a change of how runs are judged.
+``contact_step``: contact metrics at the plant's rate; ``pivot_slip``: the success rule that
+needs the pivot to stay put, and the labels that came with it (``thrown / tumbled``,
+``cube slid``, over-the-top only after a touch), with the cube's height measured at every
+plant step (:class:`bench.closed_loop_metrics.PlantContact`)."""
 
 SWEEP_DTS: tuple[float, ...] = (0.05, 0.1)
 """Control periods of the sweep (s) unless chosen otherwise."""
@@ -264,8 +271,9 @@ def _stored(cell_dir: Path, case: Case) -> dict[str, Any] | None:
     case runs again: a row whose identifying columns (:func:`case_row`: controller, QP
     backend, schedule, model, duration, seed, ...) differ from the case's was run for another
     case under the same name (e.g. ``sweep --qp-backend`` over a folder of another backend's
-    runs); a row without ``contact_step`` was measured before the contact metrics were taken
-    at the plant's rate (:class:`bench.closed_loop_metrics.PlantContact`)."""
+    runs); a row without one of :data:`JUDGED_COLUMNS` was judged by older rules (e.g. no
+    ``contact_step``: before the contact metrics were taken at the plant's rate; no
+    ``pivot_slip``: before success required the pivot to stay put)."""
     path = cell_dir / case.name / "summary.json"
     if not path.exists():
         return None
@@ -273,7 +281,7 @@ def _stored(cell_dir: Path, case: Case) -> dict[str, Any] | None:
         row = json.loads(path.read_text())
     except json.JSONDecodeError:
         return None
-    if not isinstance(row, dict) or "contact_step" not in row:
+    if not isinstance(row, dict) or any(column not in row for column in JUDGED_COLUMNS):
         return None
     for key, expected in case_row(case).items():
         if expected is not None and not _same(row.get(key), expected):
@@ -347,8 +355,8 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
 
 
 __all__ = [
-    "CLOSED_LOOP_SUITES", "COMPARISONS", "Case", "ClosedLoopSuite", "Comparison",
-    "Configuration", "SeedClaim", "SuiteGroup", "SuiteRun", "case_row", "cell_states",
+    "CLOSED_LOOP_SUITES", "COMPARISONS", "JUDGED_COLUMNS", "Case", "ClosedLoopSuite",
+    "Comparison", "Configuration", "SeedClaim", "SuiteGroup", "SuiteRun", "case_row", "cell_states",
     "l_curve_points", "plot_angles", "plot_error_bars", "plot_step_times",
     "reference_ablation", "run_case", "run_cases", "suite_configurations", "sweep_cases",
     "sweep_grid", "write_report", "write_trials_report",

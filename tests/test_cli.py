@@ -230,7 +230,7 @@ def test_solvers_plugin_registers_a_backend(tmp_path: Path) -> None:
 def _metrics(**values: float) -> SimpleNamespace:
     """The fields :func:`metric_lines` prints, zero unless given."""
     names = ("peak_angle", "balance_angle", "hold_time", "settling_time", "steady_offset",
-             "first_touch_time", "impact_speed", "contact_time", "free_time",
+             "pivot_slip", "first_touch_time", "impact_speed", "contact_time", "free_time",
              "max_cube_penetration", "max_table_penetration", "clipped_inputs",
              "plan_lcs_angle_median", "plan_lcs_angle_max", "plan_lcs_error_median",
              "plan_plant_angle_median", "plan_plant_angle_max", "plan_plant_error_median")

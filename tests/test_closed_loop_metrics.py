@@ -9,7 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from c3bench.bench.closed_loop import ControllerSpec, records_frame, run_closed_loop
+from c3bench.bench.closed_loop import (
+    ControllerSpec,
+    FailureRules,
+    records_frame,
+    run_closed_loop,
+)
 from c3bench.bench.closed_loop_metrics import (
     PlantContact,
     RunSignals,
@@ -29,7 +34,8 @@ N = 61  # 3 s at 50 ms: states 0..60
 
 def signals(**changes: object) -> RunSignals:
     """A 3 s run: the cube strikes to 0.9 rad, falls back into the band at t = 2 s and stays
-    there (0.52 rad); the ball touches at t = 0.5 s and is off the cube for states 30-39."""
+    there (0.52 rad), its pivot (far bottom corner) at x = 0.15 m throughout; the ball touches
+    at t = 0.5 s and is off the cube for states 30-39."""
     times = np.arange(N) * DT
     angles = np.concatenate([np.linspace(0.0, 0.9, 20), np.linspace(0.9, 0.7, 20),
                              np.full(21, 0.52)])
@@ -53,7 +59,7 @@ def signals(**changes: object) -> RunSignals:
     commanded[2] = (30.0, 0.0)  # at the limit: not clipped
     base = RunSignals(times=times, angles=angles, ball_gap=gap, ball_height=np.full(N, 0.1),
                       ball_speed=speed, commanded=commanded, force_limit=30.0, cube_side=0.3,
-                      plan_next=plan, lcs_next=lcs, states=states)
+                      plan_next=plan, lcs_next=lcs, states=states, pivot_x=np.full(N, 0.15))
     return replace(base, **changes)
 
 
@@ -116,6 +122,28 @@ def test_success_needs_three_seconds_and_no_deep_penetration() -> None:
     height[50] = -0.006  # the ball 6 mm into the table
     m = physical_metrics(replace(base, ball_height=height), TARGET, BAND)
     assert m.max_table_penetration == pytest.approx(0.006) and not m.success
+
+
+def test_success_needs_the_pivot_to_stay_put() -> None:
+    """The audit's sweep case ``sweep-dt0.05-geometric-q50000-l0.27``: the cube's far bottom
+    edge slid 3.5 cm along the table in the first 0.3 s, then the cube tipped to 0.49 rad and
+    held there; the old rule called that a success."""
+    base = signals()
+    slid = base.pivot_x + np.minimum(np.arange(N), 7) * 0.005  # 3.5 cm by state 7
+    m = physical_metrics(replace(base, pivot_x=slid), TARGET, BAND)
+    assert m.pivot_slip == pytest.approx(0.035) and m.hold_time == pytest.approx(1.0)
+    assert not m.success and not m.gentle_success
+    assert physical_metrics(replace(base, pivot_x=slid), TARGET, BAND,
+                            SuccessRules(pivot_slip=0.04)).success
+    crept = base.pivot_x + np.minimum(np.arange(N), 7) * 0.004  # 2.8 cm: under the limit
+    assert physical_metrics(replace(base, pivot_x=crept), TARGET, BAND).success
+    back = slid.copy()
+    back[20:] = base.pivot_x[20:]  # slid 3.5 cm and back: the largest slide counts
+    assert not physical_metrics(replace(base, pivot_x=back), TARGET, BAND).success
+    # a run whose pivot was not measured cannot be judged a success
+    unmeasured = physical_metrics(replace(base, pivot_x=np.zeros(0)), TARGET, BAND)
+    assert math.isnan(unmeasured.pivot_slip) and not unmeasured.success
+    assert FailureRules().pivot_slip == SuccessRules().pivot_slip  # one threshold
 
 
 def test_no_touch_and_no_plan() -> None:
@@ -229,3 +257,9 @@ def test_plant_rate_contact_when_the_run_starts_touching() -> None:
 def test_plant_record_arrays_are_checked() -> None:
     with pytest.raises(ValueError, match="one length"):
         plant_record(min_gap=np.zeros(3))
+    # the cube's height: both arrays or neither (a run stored before they were measured)
+    assert plant_record().columns == PlantContact.COLUMNS
+    both = plant_record(cube_clearance=np.zeros(N - 1), cube_air_time=np.zeros(N - 1))
+    assert both.columns == PlantContact.COLUMNS + PlantContact.CUBE_COLUMNS
+    with pytest.raises(ValueError, match="cube arrays"):
+        plant_record(cube_clearance=np.zeros(N - 1))

@@ -29,6 +29,7 @@ from c3bench.bench.closed_loop import (
     run_signals,
     simulate,
 )
+from c3bench.bench.closed_loop_labels import LabelRules
 from c3bench.bench.closed_loop_metrics import PlantContact, SuccessRules, physical_metrics
 from c3bench.bench.closed_loop_suite import Case, _stored, case_row
 from c3bench.problems.config import load_config
@@ -108,6 +109,15 @@ def test_metrics_agree_with_an_independent_1ms_replay(audited_run) -> None:
     np.testing.assert_allclose(frame["plant_away_time"],
                                (windows > FailureRules().contact_gap).sum(axis=1) * H)
     assert frame["plant_touch_time"].notna().sum() == (windows <= 0.002).any(axis=1).sum()
+    # the cube's lowest point above the table, by hand: centre height less the half side
+    # times |cos| + |sin| of the tilt
+    clearance = states[:, 1] - SCENE.l / 2 * (np.abs(np.cos(states[:, 2]))
+                                              + np.abs(np.sin(states[:, 2]))) - table
+    lifted = clearance[1:].reshape(-1, per_period)
+    np.testing.assert_allclose(frame["plant_cube_clearance"], lifted.max(axis=1), atol=1e-9)
+    np.testing.assert_allclose(frame["plant_cube_air_time"],
+                               (lifted > LabelRules().air_gap).sum(axis=1) * H)
+    assert trajectory.plant is not None and trajectory.plant.air_gap == LabelRules().air_gap
 
 
 def test_advance_steps_the_plant_as_plant_step_does() -> None:
@@ -193,7 +203,20 @@ def test_stored_rows_without_plant_rate_contact_are_run_again(tmp_path: Path) ->
     row = {**case_row(case), "success": True}
     (cell / "summary.json").write_text(json.dumps(row))
     assert _stored(tmp_path, case) is None  # measured at the recorded states only: stale
-    (cell / "summary.json").write_text(json.dumps({**row, "contact_step": 0.001}))
+    judged = {**row, "contact_step": 0.001, "pivot_slip": 0.002}
+    (cell / "summary.json").write_text(json.dumps(judged))
     stored = _stored(tmp_path, case)
     assert stored is not None and stored["contact_step"] == 0.001
+
+
+def test_stored_rows_judged_before_the_pivot_rule_are_run_again(tmp_path: Path) -> None:
+    """A row stored before success required the pivot to stay put (no ``pivot_slip``) may
+    call a slid cube a success, and its labels predate ``thrown / tumbled`` and ``cube
+    slid``: the case runs again."""
+    case = Case("c", "g", ControllerSpec())
+    cell = tmp_path / "c"
+    cell.mkdir()
+    row = {**case_row(case), "success": True, "label": "success", "contact_step": 0.001}
+    (cell / "summary.json").write_text(json.dumps(row))
+    assert _stored(tmp_path, case) is None
 

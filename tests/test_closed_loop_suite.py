@@ -100,11 +100,34 @@ def test_sweep_grid_has_one_cell_per_combination() -> None:
                         model_ls=(0.29, 0.30))
     assert len(cases) == 4 and len({c.name for c in cases}) == 4
     rows = [{"group": "sweep", "dt": c.dt, "rho_schedule": c.spec.rho_schedule,
-             "q_cube_pose": c.q_cube_pose, "model_l": c.spec.model_l,
-             "failure_mode": i % 2, "angle_error": 0.1 * i} for i, c in enumerate(cases)]
+             "q_cube_pose": c.q_cube_pose, "model_l": c.spec.model_l, "success": i % 2 == 1,
+             "gentle_success": False, "label": "success" if i % 2 else "strike-topple",
+             "failure_mode": i % 2, "angle_error": 0.1 * i, "error": ""}
+            for i, c in enumerate(cases)]
     grid = sweep_grid(pd.DataFrame(rows))
-    assert grid.count("success") == 2 and grid.count("mode 1") == 2
+    assert grid.count("| success (") == 2 and grid.count("strike-topple (") == 2
     assert "0.05 / geometric" in grid and "0.1 / geometric" in grid
+    assert "mode" not in grid.split("\n\n", 1)[1]
+
+
+def test_sweep_grid_agrees_with_the_outcomes_table() -> None:
+    """The audit's sweep case: the angle ends in the band (the older end-time rule's mode 0
+    would need no slip; here its mode is 1) but the cube slid 3.5 cm, so the run failed, as
+    its ``success`` and ``label`` say; a run that failed to run is an error, and a success
+    whose old mode said otherwise is a success."""
+    case = sweep_cases(dts=(0.05,), schedules=("geometric",), q_boxes=(5e4,),
+                       model_ls=(0.27, 0.29, 0.30))
+    base = {"group": "sweep", "dt": 0.05, "rho_schedule": "geometric", "q_cube_pose": 5e4,
+            "angle_error": 0.007, "error": ""}
+    rows = [{**base, "model_l": 0.27, "success": False, "gentle_success": False,
+             "label": "cube slid", "failure_mode": 0},
+            {**base, "model_l": 0.29, "success": True, "gentle_success": True,
+             "label": "success", "failure_mode": 1},
+            {**base, "model_l": 0.30, "success": False, "label": "error", "failure_mode": -1,
+             "angle_error": float("nan"), "error": "RuntimeError: boom"}]
+    assert [c.spec.model_l for c in case] == [0.27, 0.29, 0.30]
+    cells = sweep_grid(pd.DataFrame(rows)).splitlines()[-1].split(" | ")
+    assert cells[1:] == ["cube slid (0.01)", "gentle success (0.01)", "error |"]
 
 
 # --- the suites as configurations x randomized trials ---------------------------------------
