@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 
 from c3bench.bench import store
+from c3bench.bench.accuracy import unverified_cells
 from c3bench.bench.budgets import budget_seconds
 from c3bench.bench.metrics import (
     DUAL_FAMILIES,
@@ -89,7 +90,7 @@ def family_table(summary: pd.DataFrame, not_run: list[str] | None = None) -> str
 def _header(info: dict[str, Any], frame: pd.DataFrame) -> list[str]:
     packages = info.get("packages", {})
     rows = [
-        ["run date (UTC)", info.get("date", "-")],
+        ["last run started (UTC)", info.get("date", "-")],
         ["CPU", f"{info.get('cpu', '-')} ({info.get('cores', '-')} cores)"],
         ["host", info.get("host", "-")],
         ["platform", info.get("platform", "-")],
@@ -98,15 +99,56 @@ def _header(info: dict[str, Any], frame: pd.DataFrame) -> list[str]:
         ["BLAS threads", f"{info.get('blas_threads_timed', 1)} during timed solves "
                          f"(pinned with threadpoolctl); library default "
                          f"{info.get('blas_threads_default', '-')}"],
-        ["executor", f"Dask scheduler {info['scheduler']}" if info.get("scheduler")
-         else f"local process pool, {info.get('jobs', '-')} workers"],
-        ["timing", f"{info.get('repeats', '-')} timed repeats after 1 untimed warm-up, "
-                   f"median; time limit {info.get('time_limit', '-')} s per solve"],
+        ["executor", _executor(info, frame)],
+        ["timing", _timing(frame)],
         ["cells stored", str(len(frame))],
         ["hosts in rows", ", ".join(sorted(set(frame["host"]))) or "-"],
     ]
     return [markdown_table(["", ""], [[fmt(a, "text"), fmt(b, "text")] for a, b in rows],
-                           "ll")]
+                           "ll"),
+            "Machine, versions and executor: `run_info.json`, which every run rewrites (even "
+            "one that stores no cell); timing and hosts: the stored rows.\n"]
+
+
+def _distinct(values: pd.Series, unit: str = "") -> str:
+    """Every distinct value of ``values`` (ascending), with its cell count when they differ."""
+    counts = values.value_counts().sort_index()
+    return ", ".join(f"{value:g}{unit}" + (f" ({count} cells)" if len(counts) > 1 else "")
+                     for value, count in counts.items())
+
+
+def _timing(frame: pd.DataFrame) -> str:
+    """Timed repeats and time limits of the stored rows (not of the last run: a run that
+    stores nothing still rewrites ``run_info.json``)."""
+    if frame.empty:
+        return "-"
+    sequence = frame["start"] == Start.SEQUENCE
+    limits = []
+    if (~sequence).any():
+        limits.append(f"time limit {_distinct(frame.loc[~sequence, 'time_limit'], ' s')} per "
+                      "solve")
+    if sequence.any():
+        limits.append(f"sequence cells: {_distinct(frame.loc[sequence, 'time_limit'], ' s')} "
+                      "per ADMM run")
+    return (f"{_distinct(frame['repeats'])} timed repeats after 1 untimed warm-up, median; "
+            + "; ".join(limits))
+
+
+def _executor(info: dict[str, Any], frame: pd.DataFrame) -> str:
+    """The last run's executor (``run_info.json``), attributed to the stored rows only when
+    every one of them finished during that run."""
+    if not info:
+        return "-"
+    what = (f"Dask scheduler {info['scheduler']}" if info.get("scheduler")
+            else f"local process pool, {info.get('jobs', '-')} workers")
+    started = pd.to_datetime(str(info.get("date", "")), utc=True, errors="coerce")
+    if pd.isna(started):
+        return f"{what} (the last run's; its start time is unknown)"
+    finished = pd.to_datetime(frame["finished_at"], utc=True, errors="coerce", format="ISO8601")
+    ours = int((finished >= started).sum())
+    if len(frame) and ours == len(frame):
+        return what
+    return f"{what} (the last run's: {ours} of the {len(frame)} stored cells finished in it)"
 
 
 def _method() -> str:
@@ -267,9 +309,13 @@ def reason_kind(verdict: str) -> list[str]:
 
 
 def _failures(frame: pd.DataFrame) -> str:
-    failed = frame[~frame["success"]]
+    """Failed cells per family and solver; unverified cells (feasible, optimality not
+    verified) are not failures and are counted apart below the table."""
+    unverified = unverified_cells(frame)
+    failed = frame[~frame["success"].to_numpy(dtype=bool) & ~unverified]
+    apart = _unverified_note(frame[unverified])
     if failed.empty:
-        return "Every cell succeeded.\n"
+        return f"No cell failed. {apart}" if apart else "Every cell succeeded.\n"
     rows = []
     for (family, solver), group in failed.groupby(["family", "solver"], sort=True):
         kinds = pd.Series([k for v in group["verdict"] for k in reason_kind(v)], dtype=str)
@@ -285,7 +331,19 @@ def _failures(frame: pd.DataFrame) -> str:
             + "\nCategories: the registry's failure category; *inaccurate*: the solver "
               "claimed a solution but the residual check failed; *not found*: it returned "
               "without claiming one. The per-cell reason is the `verdict` column of the "
-              "results.\n")
+              "results.\n" + (f"\n{apart}" if apart else ""))
+
+
+def _unverified_note(unverified: pd.DataFrame) -> str:
+    """The sentence counting the unverified cells apart ('' when there are none)."""
+    if unverified.empty:
+        return ""
+    groups = unverified.groupby(["family", "solver"], sort=True).size()
+    where = ", ".join(f"{family} / {solver} ({count})"
+                      for (family, solver), count in groups.items())
+    return (f"Not counted as failures: {len(unverified)} *unverified* cells (feasible, "
+            "optimality not verified: they passed every residual check, but no verified "
+            f"reference optimum exists; not successes either): {fmt(where, 'text')}.\n")
 
 
 def _family_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> list[str]:

@@ -10,7 +10,7 @@ import math
 
 import pandas as pd
 
-from c3bench.bench.accuracy import claimed_but_wrong
+from c3bench.bench.accuracy import claimed_but_wrong, unverified_cells
 from c3bench.bench.budgets import BUDGET_FAMILIES, DEFAULT_BUDGET_S, BudgetCount, budget_table
 from c3bench.bench.metrics import family_label, ranked_time_label
 from c3bench.bench.tables import NOT_RUN, fmt, fraction, markdown_table
@@ -20,11 +20,18 @@ from c3bench.problems.names import REFERENCE_ADMM_ITERATIONS
 
 def claimed_wrong_section(frame: pd.DataFrame) -> str:
     """The "claimed success but wrong" table: per family and solver, the cells whose solver
-    returned ``found=True`` and whose verdict failed, with the worst example."""
+    returned ``found=True`` and whose verdict failed, with the worst example; found=True cells
+    that are *unverified* (:func:`bench.accuracy.unverified_cells`) are neither successes nor
+    wrong and are counted apart."""
     groups = claimed_but_wrong(frame)
+    unverified = int((frame["found"].to_numpy(dtype=bool) & unverified_cells(frame)).sum())
+    apart = (f"{unverified} found=True cells passed every residual check without a verified "
+             "reference optimum: *unverified*, counted apart (neither successes nor wrong).\n"
+             if unverified else "")
     if not groups:
-        return ("No solver claimed a solution that the residual check rejected "
-                "(every found=True cell succeeded).\n")
+        return ("No solver claimed a solution that the residual check rejected (every "
+                + ("found=True cell succeeded or is unverified). " + apart if unverified
+                   else "found=True cell succeeded).\n"))
     rows = [[family_label(g.family, g.variant), g.solver, str(g.cells), str(g.claimed),
              fraction(g.wrong, g.claimed),
              fmt(f"{g.instance} ({g.settings}, {g.precision}, {g.start})", "text"),
@@ -37,7 +44,8 @@ def claimed_wrong_section(frame: pd.DataFrame) -> str:
               "(`found` = True) and the residual check failed (`success` = False). The "
               "example is the wrong cell whose figure is furthest above its threshold "
               "(value / threshold largest; an unavailable figure first): the tolerance, or "
-              "max(tolerance, reference spread) for the cost error.\n")
+              "max(tolerance, reference spread) for the cost error.\n"
+            + (f"\n{apart}" if unverified else ""))
 
 
 def _budget_origin(budget_s: float, explicit: bool) -> str:

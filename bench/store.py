@@ -183,25 +183,48 @@ def empty_row() -> dict[str, Any]:
 
 
 def normalise_row(row: Mapping[str, Any]) -> dict[str, Any]:
-    """Coerce a row to the schema's Python types; ``ValueError`` names a missing column."""
+    """Coerce a row to the schema's Python types.
+
+    Raises
+    ------
+    ValueError
+        A column is missing, or holds a value of another type, on one line naming the column:
+        text such as ``'False'`` in a ``bool`` column (``None`` is False there; a stored
+        table's are checked by :func:`read_results`), NaN or a fraction in an ``int64`` one.
+    """
     out: dict[str, Any] = {}
     for column in SCHEMA:
         if column.name not in row:
             raise ValueError(f"row is missing column {column.name!r}")
         value = row[column.name]
-        if column.dtype == "str":
-            out[column.name] = "" if value is None else str(value)
-        elif column.dtype == "int64":
-            out[column.name] = int(value)
-        elif column.dtype == "Int64":
-            out[column.name] = None if value is None or (
-                isinstance(value, float) and math.isnan(value)) or value is pd.NA else int(value)
-        elif column.dtype == "float64":
-            out[column.name] = _from_json_float(value) if value is None or isinstance(
-                value, str) else float(value)
-        else:
-            out[column.name] = bool(value)
+        try:
+            out[column.name] = _coerce(value, column.dtype)
+        except (TypeError, ValueError, OverflowError) as error:
+            shown = value.item() if isinstance(value, np.generic) else value
+            raise ValueError(f"column {column.name!r} ({column.dtype}) holds {shown!r}: "
+                             f"{error}") from None
     return out
+
+
+def _coerce(value: Any, dtype: str) -> Any:
+    """``value`` as the Python type of a schema ``dtype`` (see :func:`normalise_row`)."""
+    if dtype == "str":
+        return "" if value is None else str(value)
+    if dtype == "bool":
+        if isinstance(value, str | bytes):
+            raise TypeError("text, not a boolean")
+        return value is not None and value is not pd.NA and bool(value)
+    if dtype == "Int64" and (value is None or value is pd.NA or (
+            isinstance(value, float) and math.isnan(value))):
+        return None
+    if dtype in ("int64", "Int64"):
+        if isinstance(value, str | bytes):
+            raise TypeError("not a whole number")
+        number = int(value)
+        if number != value:
+            raise ValueError("not a whole number")
+        return number
+    return _from_json_float(value) if value is None or isinstance(value, str) else float(value)
 
 
 def cell_key(row: Mapping[str, Any]) -> tuple[str, ...]:
@@ -381,9 +404,17 @@ def read_results(source: str | Path) -> pd.DataFrame:
     For a suite directory the cell files are the truth: when it has a ``cells/`` folder the
     table is gathered from it and ``results.parquet``/``.csv`` rewritten to match (kept as
     they are when the directory is read-only), so the table never disagrees with the cells
-    (a run killed before its last consolidation, cells removed as stale). Raises
-    :class:`SchemaVersionError` for another schema version and ``FileNotFoundError`` when
-    there are no results.
+    (a run killed before its last consolidation, cells removed as stale).
+
+    Raises
+    ------
+    SchemaVersionError
+        Another schema version, a damaged file, or bad values: a column holding a value of
+        another type (:func:`normalise_row`; a ``bool`` column anything but booleans) or two
+        rows of one cell (:func:`cell_key`); the one-line message names the file and the
+        column or the repeated cell.
+    FileNotFoundError
+        There are no results.
     """
     source = Path(source)
     if not source.exists():
@@ -392,7 +423,8 @@ def read_results(source: str | Path) -> pd.DataFrame:
         paths = SuitePaths(source)
         if paths.cells.is_dir() and (any(paths.cells.glob("*.json"))
                                      or paths.parquet.exists()):
-            frame = rows_to_frame(read_cells(paths))
+            frame = _unique(rows_to_frame(read_cells(paths)), paths.cells,
+                            "delete the cell files of the repeated cell and run again")
             with contextlib.suppress(OSError):
                 write_frame(paths, frame)
             return frame
@@ -409,7 +441,43 @@ def read_results(source: str | Path) -> pd.DataFrame:
     if missing:
         raise SchemaVersionError(f"{source}: columns {missing} missing for schema version "
                                  f"{SCHEMA_VERSION}")
-    return rows_to_frame(frame[list(COLUMNS)].to_dict("records"))
+    _check_booleans(frame, source)
+    try:
+        rows = rows_to_frame(frame[list(COLUMNS)].to_dict("records"))
+    except ValueError as error:
+        raise SchemaVersionError(f"{source}: {error}; {_REWRITE}") from error
+    return _unique(rows, source, _REWRITE)
+
+
+_REWRITE = (f"not a valid schema version {SCHEMA_VERSION} results table (delete it or run "
+            "the command that wrote it again)")
+
+
+def _check_booleans(frame: pd.DataFrame, source: Path) -> None:
+    """:class:`SchemaVersionError` naming ``source`` and the column when a ``bool`` column of
+    a stored table holds anything but booleans (text such as ``'False'``, numbers, empty
+    values): ``bool('False')`` is True, so such a table would be misread."""
+    for column in SCHEMA:
+        values = frame[column.name]
+        if column.dtype != "bool" or pd.api.types.is_bool_dtype(values.dtype):
+            continue
+        bad = [v for v in values if not isinstance(v, bool | np.bool_)]
+        if bad:
+            raise SchemaVersionError(f"{source}: column {column.name!r} (bool) holds "
+                                     f"{bad[0]!r} ({len(bad)} of {len(values)} values are "
+                                     f"not booleans); {_REWRITE}")
+
+
+def _unique(frame: pd.DataFrame, source: Path, fix: str) -> pd.DataFrame:
+    """``frame``, unless two of its rows share a cell key (:func:`cell_key`):
+    :class:`SchemaVersionError` naming ``source``, the first repeated key and ``fix``."""
+    repeated = frame.duplicated(list(KEY_COLUMNS), keep="first")
+    if repeated.any():
+        key = dict(zip(KEY_COLUMNS, cell_key(frame[repeated].iloc[0].to_dict()),
+                       strict=True))
+        raise SchemaVersionError(f"{source}: {int(repeated.sum())} rows repeat a cell, first "
+                                 f"{key} (a cell is stored once); {fix}")
+    return frame
 
 
 # --- other folders of the results root ----------------------------------------------------------
