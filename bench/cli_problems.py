@@ -222,7 +222,8 @@ def _add_import_export(problems_sub: Any) -> None:
         description="Write each instance without complementarity pairs as OUT/<name>.npz in "
                     "qpsolvers' Problem.save layout, OUT/index.json with each one's "
                     "objective offset, and OUT/c3bench_test_set.py, the qpbenchmark test set "
-                    "over them (qpbenchmark --results-path R.csv OUT/c3bench_test_set.py run).")
+                    "over them (qpbenchmark --results-path R.csv OUT/c3bench_test_set.py run "
+                    "--author NAME).")
     export.add_argument("directory", metavar="DIR", help="directory holding instances")
     export.add_argument("--out", required=True, metavar="OUT", help="directory to write")
     export.add_argument("--format", choices=FORMATS, default=FORMATS[0],

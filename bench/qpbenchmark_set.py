@@ -5,7 +5,8 @@
 ``OUT/c3bench_test_set.py``, a two-line file defining the class qpbenchmark's command line
 looks for (``C3BenchTestSet``, the title-cased file name), so::
 
-    qpbenchmark --results-path OUT/results.csv OUT/c3bench_test_set.py run --solver clarabel
+    qpbenchmark --results-path OUT/results.csv OUT/c3bench_test_set.py run --solver clarabel \
+        --author NAME
 
 runs the exported instances with qpbenchmark's own settings, tolerances and report (Caron et al.,
 qpbenchmark). In Python, ``qpbenchmark_class()(OUT)`` (or ``C3BenchTestSet(OUT)``, resolved
