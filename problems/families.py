@@ -47,17 +47,25 @@ from c3bench.problems.limits import Limits
 from c3bench.problems.mpc import MPC, HorizonLayout
 from c3bench.problems.names import Block, Family, QPVariant, Variant
 
+ZERO_WEIGHT_BLOCKS = (Block.X, Block.U)
+"""Blocks whose consensus weight may be 0: the QP step stays strictly convex through the
+cost's ``Q`` and ``R`` and the dynamics (the C3 paper's zero ``G`` block on ``u``); ``lam``
+and ``eta`` carry no cost of their own, so their weights must be positive."""
+
 
 def check_rho(rho: Mapping[str, float], blocks: tuple[str, ...]) -> dict[str, float]:
-    """Validate consensus weights: finite and > 0 for every block; ``ValueError`` names it."""
+    """Validate consensus weights: finite, ``>= 0`` for :data:`ZERO_WEIGHT_BLOCKS` and
+    ``> 0`` for the others; ``ValueError`` names the block."""
     out: dict[str, float] = {}
     for block in blocks:
         label = str(block)
         if block not in rho:
             raise ValueError(f"rho is missing the weight for block {label!r}")
         value = float(rho[block])
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"rho[{label!r}] must be finite and > 0, got {rho[block]!r}")
+        zero_ok = block in ZERO_WEIGHT_BLOCKS
+        if not (math.isfinite(value) and (value >= 0 if zero_ok else value > 0)):
+            raise ValueError(f"rho[{label!r}] must be finite and {'>= 0' if zero_ok else '> 0'}"
+                             f", got {rho[block]!r}")
         out[block] = value
     return out
 

@@ -20,6 +20,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from c3bench.problems.errors import InputError
 from c3bench.problems.lcs import LCS, LCSBatch
 from c3bench.problems.mpc import MPC
 from c3bench.solvers.admm.kernel import StepInputs
@@ -33,6 +34,22 @@ from c3bench.solvers.admm.loop import (
 from c3bench.solvers.admm.options import C3Options, DualWarmStart
 from c3bench.solvers.admm.solution import C3Solution, C3Trace
 from c3bench.solvers.admm.stacked import StackedKernel, qp_layout
+
+
+def check_sizes(nx: int, nlam: int, nu: int, x0: np.ndarray) -> np.ndarray:
+    """``x0`` as float64 after checking the LCS's sizes, for every kernel alike
+    (:class:`InputError`, one line): C3 / C3+ need a contact pair (``nlam >= 1``; an LCS
+    without one is a linear system, whose MPC is one QP) and an input (``nu >= 1``), and
+    ``x0`` has ``nx`` entries."""
+    if nlam < 1:
+        raise InputError("the LCS has no complementarity pair (nlam = 0): C3 / C3+ need at "
+                         "least one; without contacts the MPC is a single QP")
+    if nu < 1:
+        raise InputError("the LCS has no input (nu = 0): there is nothing to control")
+    state = np.asarray(x0, dtype=np.float64)
+    if state.shape != (nx,):
+        raise InputError(f"x0 must have shape ({nx},), got {state.shape}")
+    return state
 
 
 def solve_c3(lcs: LCS, mpc: MPC, x0: np.ndarray, options: C3Options | None = None,
@@ -73,7 +90,7 @@ def solve_robust(lcs_samples: Sequence[LCS], weights: Sequence[float] | np.ndarr
     S = len(lcs_samples)
     p = normalise_weights(weights, S)
     first = lcs_samples[0]
-    x0 = np.asarray(x0, dtype=float)
+    x0 = check_sizes(first.nx, first.nlam, first.nu, x0)
     fallback = np.zeros(first.nu) if fallback_input is None else np.asarray(fallback_input,
                                                                             dtype=float)
     layout = qp_layout(first, mpc.horizon, options.variant)
@@ -95,9 +112,7 @@ def solve_batched(kernel: Any, lcs: LCSBatch, mpc: MPC, x0: np.ndarray, options:
                   shared_inputs: bool = True, record_residuals: bool = False) -> C3Solution:
     """One control step of a batched kernel (numpy Riccati, compiled, JAX) on ``lcs``."""
     n = lcs.n_samples
-    x0 = np.asarray(x0, dtype=np.float64)
-    if x0.shape != (lcs.nx,):
-        raise ValueError(f"x0 must have shape ({lcs.nx},), got {x0.shape}")
+    x0 = check_sizes(lcs.nx, lcs.nlam, lcs.nu, x0)
     fallback = np.zeros(lcs.nu) if fallback_input is None else np.asarray(fallback_input,
                                                                           dtype=float)
     p = normalise_weights(weights, n)

@@ -15,7 +15,9 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Any
 
+from c3bench.problems.families import ZERO_WEIGHT_BLOCKS
 from c3bench.problems.names import (
     BLOCKS,
     REFERENCE_ADMM_ITERATIONS,
@@ -78,13 +80,26 @@ WEIGHT_FLOOR = 1e-6
 """Smallest sample weight of the robust controller, relative to the largest."""
 
 
+def _settings(name: str, value: Any) -> Settings:
+    """``value`` as :class:`Settings`: given, or the named profile's (``ValueError`` naming
+    the option otherwise)."""
+    if isinstance(value, Settings):
+        return value
+    if isinstance(value, str):
+        try:
+            return settings_for(value)
+        except ValueError as error:
+            raise ValueError(f"{name}: {error}") from error
+    raise ValueError(f"{name} must be a Settings or a profile name, got {value!r}")
+
+
 def check_weights(weights: Mapping[str, float], name: str, positive: tuple[str, ...]
                   ) -> dict[str, float]:
     """Weights by block, finite and ``>= 0``; ``> 0`` for the blocks in ``positive``.
 
-    Zero is allowed where the maths allows it: a zero consensus weight on ``x`` or ``u`` leaves
-    the QP step strictly convex through ``Q`` and ``R`` (the C3 paper's zero ``G`` block on
-    ``u``); ``lam`` and ``eta`` carry no cost of their own, so their weights must be positive.
+    Zero is allowed where the maths allows it
+    (:data:`c3bench.problems.families.ZERO_WEIGHT_BLOCKS`: ``x`` and ``u``); ``rho0`` needs the
+    other blocks positive.
     """
     out: dict[str, float] = {}
     for block in BLOCKS:
@@ -113,9 +128,9 @@ class C3Options:
         ``"c3plus"`` (QP over ``(x, lam, u, eta)``, closed-form projection) or ``"c3"`` (QP
         over ``(x, lam, u)``, per-step MIQP projection).
     qp_backend, qp_settings
-        Registry name and settings of the reference kernel's QP step. ``qp_settings=None``
-        means the default profile, and for ``equilibrated_kkt`` also
-        ``options={"diagnostics": False}``.
+        Registry name and settings of the reference kernel's QP step (a :class:`Settings`
+        or a profile name such as ``"high_accuracy"``). ``qp_settings=None`` means the default
+        profile, and for ``equilibrated_kkt`` also ``options={"diagnostics": False}``.
     projection_backend, projection_settings
         C3's projection: a registry MIQP backend name, or ``"enumeration"`` (exact, by
         enumerating the contact modes of each step; :mod:`c3bench.solvers.projection_enum`).
@@ -196,11 +211,14 @@ class C3Options:
         if self.qp_settings is None:
             self.qp_settings = Settings(options={"diagnostics": False}) \
                 if self.qp_backend == "equilibrated_kkt" else Settings()
+        self.qp_settings = _settings("qp_settings", self.qp_settings)
+        self.projection_settings = _settings("projection_settings", self.projection_settings)
         self.variant = Variant(self.variant)
         self.rho_schedule = RhoScheduleName(self.rho_schedule)
         self.stopping = Stopping(self.stopping)
         self.output = Output(self.output)
-        self.rho0 = check_weights(self.rho0, "rho0", positive=("lam", "eta"))
+        self.rho0 = check_weights(self.rho0, "rho0", positive=tuple(
+            str(block) for block in BLOCKS if block not in ZERO_WEIGHT_BLOCKS))
         if self.projection_weights is not None:
             self.projection_weights = check_weights(self.projection_weights,
                                                     "projection_weights", positive=())
