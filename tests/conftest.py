@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -124,3 +125,22 @@ def random_lcs_problem(n: int, seed: int) -> tuple[MPC, LCSBatch, np.ndarray]:
                    F=F @ np.swapaxes(F, 1, 2), H=rng.normal(size=(n, nlam, nu)),
                    c=rng.normal(size=(n, nlam)), dt=0.05)
     return mpc, lcs, rng.normal(size=nx)
+
+
+def synthetic_report(tmp_path: Path, table: Any, info: dict[str, Any] | None = None,
+                     budget_ms: float | None = None) -> str:
+    """The report of a results ``table`` stored as a suite under ``tmp_path`` (no figures;
+    the solver table, and ``info``, in its run_info.json)."""
+    import json
+
+    from c3bench.bench import store
+    from c3bench.bench.report import build_report
+
+    paths = store.SuitePaths.of(tmp_path, "synthetic")
+    paths.root.mkdir(parents=True, exist_ok=True)
+    store.write_frame(paths, table)
+    solvers = [{"name": s, "available": True, "reason": "", "version": "-",
+                "families": sorted(set(table.loc[table["solver"] == s, "family"])),
+                "precisions": ["float64"]} for s in sorted(set(table["solver"]))]
+    paths.run_info.write_text(json.dumps({"solver_table": solvers, **(info or {})}))
+    return build_report(paths, table, figures=False, budget_ms=budget_ms)

@@ -4,23 +4,21 @@ budgets, compare, report), on synthetic results tables whose answers are compute
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 import pytest
+from conftest import synthetic_report
 from synthetic_results import frame as make_frame
 from synthetic_results import row
 
-from c3bench.bench import metrics, store
+from c3bench.bench import metrics
 from c3bench.bench.accuracy import accuracy_profile, claimed_but_wrong, pareto_front, pareto_points
 from c3bench.bench.budgets import DEFAULT_BUDGET_S, budget_seconds, budget_table
 from c3bench.bench.compare import compare_frame, format_comparison
 from c3bench.bench.metrics import TIME_SHIFT, aggregate, worst_residual
-from c3bench.bench.report import build_report
 from c3bench.problems.errors import InputError
 
 
@@ -43,16 +41,6 @@ def _table(text: str, heading: str) -> dict[str, dict[str, str]]:
             for cells in ([c.strip() for c in line.strip("|").split("|")] for line in lines[2:])}
 
 
-def _report(tmp_path: Path, table: pd.DataFrame, budget_ms: float | None = None) -> str:
-    """The report of ``table`` as a stored suite (no figures; solver table from run_info)."""
-    paths = store.SuitePaths.of(tmp_path, "synthetic")
-    paths.root.mkdir(parents=True, exist_ok=True)
-    store.write_frame(paths, table)
-    solvers = [{"name": s, "available": True, "reason": "", "version": "-",
-                "families": sorted(set(table.loc[table["solver"] == s, "family"])),
-                "precisions": ["float64"]} for s in sorted(set(table["solver"]))]
-    paths.run_info.write_text(json.dumps({"solver_table": solvers}))
-    return build_report(paths, table, figures=False, budget_ms=budget_ms)
 
 
 # --- geometric means without a floor ------------------------------------------------------------
@@ -84,7 +72,7 @@ def test_accuracy_columns_are_geometric_means_of_the_actual_values(tmp_path: Pat
     assert summary.loc["alpha", "dual_rel"] == 1.0
     assert summary.loc["beta", "dual_rel"] == pytest.approx(
         _gm(DUAL["beta"]) / _gm(DUAL["alpha"]), rel=1e-12)
-    text = _report(tmp_path, table)
+    text = synthetic_report(tmp_path, table)
     shown = _table(text, "### c3_qp / default / float64 / cold")
     assert shown["alpha"]["primal (rel.)"] == f"{_gm(PRIMAL['alpha']):.1e}"
     assert shown["alpha"]["dual (rel.)"] == f"{_gm(DUAL['alpha']):.1e}"
@@ -223,7 +211,7 @@ def test_claimed_but_wrong_finds_exactly_the_planted_rows(tmp_path: Path) -> Non
     assert (gamma.wrong, gamma.instance, gamma.figure) == (1, "lcp-s001",
                                                            "dual_residual_relative")
     assert math.isnan(gamma.value)
-    shown = _table(_report(tmp_path, table), "## Claimed success but wrong")
+    shown = _table(synthetic_report(tmp_path, table), "## Claimed success but wrong")
     assert shown["c3_qp"]["wrong / claimed"] == "40.0% (2/5)"
     assert shown["lcp"]["value"] == "unavailable"
 
@@ -247,11 +235,11 @@ def test_budget_counts_successes_within_the_control_budget(tmp_path: Path) -> No
     assert default == {"c3_qp": (2, 4), "lcp": (0, 2)}  # mpcc is not a QP family
     wider = {c.family: (c.within, c.cells) for c in budget_table(table, 1e-2)}
     assert wider == {"c3_qp": (3, 4), "lcp": (2, 2)}
-    text = _report(tmp_path, table)
+    text = synthetic_report(tmp_path, table)
     assert "b = dt / N = 50 ms / 10 = 5 ms" in text
     assert _table(text, "**c3_qp** (within b")["alpha"]["default / float64 / cold"] == \
         "50.0% (2/4)"
-    text = _report(tmp_path, table, budget_ms=10.0)
+    text = synthetic_report(tmp_path, table, budget_ms=10.0)
     assert "b = 10 ms (set for this report)" in text and "time limit 10 s" in text
     assert _table(text, "**lcp** (within b")["alpha"]["default / float64 / cold"] == \
         "100.0% (2/2)"
@@ -274,7 +262,7 @@ def test_a_solver_of_one_variant_is_not_run_on_the_other(tmp_path: Path) -> None
     assert closed["variant"].tolist() == ["c3plus"] and closed["cells"].tolist() == [3]
     assert summary.loc[summary["solver"] == "scip", "cells"].tolist() == [3, 3]
     assert worst_residual(table).tolist() == pytest.approx([1e-12] * len(table))
-    text = _report(tmp_path, table)
+    text = synthetic_report(tmp_path, table)
     overview = _table(text, "**projection (c3 variant)** (success rate")
     assert overview["c3plus_closed_form"]["default"] == "not run"
     assert _table(text, "**projection (c3plus variant)** (success rate")[

@@ -5,32 +5,20 @@ last run's ``run_info.json``.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
+from conftest import synthetic_report
 from synthetic_results import frame as make_frame
 from synthetic_results import row
 
-from c3bench.bench import store
 from c3bench.bench.accuracy import claimed_but_wrong, unverified_cells
-from c3bench.bench.report import build_report
 
 
 def _section(text: str, heading: str) -> str:
     return text.split(f"## {heading}\n", 1)[1].split("\n## ", 1)[0]
 
 
-def _report(tmp_path: Path, table: pd.DataFrame, info: dict[str, Any] | None = None) -> str:
-    paths = store.SuitePaths.of(tmp_path, "synthetic")
-    paths.root.mkdir(parents=True, exist_ok=True)
-    store.write_frame(paths, table)
-    solvers = [{"name": s, "available": True, "reason": "", "version": "-",
-                "families": sorted(set(table.loc[table["solver"] == s, "family"])),
-                "precisions": ["float64"]} for s in sorted(set(table["solver"]))]
-    paths.run_info.write_text(json.dumps({"solver_table": solvers, **(info or {})}))
-    return build_report(paths, table, figures=False)
 
 
 def _projection(count: int, **values: Any) -> list[dict[str, Any]]:
@@ -44,7 +32,7 @@ def test_unverified_cells_are_not_failures(tmp_path: Path) -> None:
     table = make_frame(_projection(3))
     assert unverified_cells(table).all() and not table["success"].any()
     assert claimed_but_wrong(table) == []
-    text = _report(tmp_path, table)
+    text = synthetic_report(tmp_path, table)
     failures = _section(text, "Failures")
     assert "inaccurate" not in failures and "| c3plus_closed_form |" not in failures
     assert "Every cell succeeded" not in failures
@@ -58,7 +46,7 @@ def test_failures_table_counts_only_the_real_failures(tmp_path: Path) -> None:
     rows = [*_projection(2), row(instance="projection-c3plus-s000-i00-k9", family="projection",
                                  solver="c3plus_closed_form", primal_residual_relative=1.0)]
     rows += [row(instance="c3_qp-s000-i00", solver="alpha", dual_residual_relative=1.0)]
-    text = _report(tmp_path, make_frame(rows))
+    text = synthetic_report(tmp_path, make_frame(rows))
     failures = _section(text, "Failures")
     table = {line.split("|")[2].strip(): line for line in failures.splitlines()
              if line.startswith("| ") and "---" not in line and "failed cells" not in line}
@@ -71,7 +59,7 @@ def test_failures_table_counts_only_the_real_failures(tmp_path: Path) -> None:
 
 
 def test_no_unverified_cells_keeps_the_old_sentences(tmp_path: Path) -> None:
-    text = _report(tmp_path, make_frame([row()]))
+    text = synthetic_report(tmp_path, make_frame([row()]))
     assert _section(text, "Failures").strip() == "Every cell succeeded."
     assert "(every found=True cell succeeded)" in _section(text, "Claimed success but wrong")
 
@@ -93,8 +81,8 @@ def _header(text: str) -> dict[str, str]:
 
 def test_header_timing_is_read_from_the_rows(tmp_path: Path) -> None:
     """A later run that stored nothing (repeats 1, limit 2 s) does not describe the rows."""
-    header = _header(_report(tmp_path, make_frame(_timed_rows("2025-01-01T00:00:00+00:00")),
-                             LAST_RUN))
+    rows = make_frame(_timed_rows("2025-01-01T00:00:00+00:00"))
+    header = _header(synthetic_report(tmp_path, rows, LAST_RUN))
     assert header["timing"].startswith("3 timed repeats")
     assert "time limit 10 s (3 cells), 100 s (1 cells) per solve" in header["timing"]
     assert "2 s" not in header["timing"] and "1 timed" not in header["timing"]
@@ -104,14 +92,14 @@ def test_header_timing_is_read_from_the_rows(tmp_path: Path) -> None:
 
 
 def test_header_executor_is_attributed_when_the_last_run_made_every_row(tmp_path: Path) -> None:
-    header = _header(_report(tmp_path, make_frame(_timed_rows("2025-06-01T00:00:05+00:00")),
-                             LAST_RUN))
+    rows = make_frame(_timed_rows("2025-06-01T00:00:05+00:00"))
+    header = _header(synthetic_report(tmp_path, rows, LAST_RUN))
     assert header["executor"] == "local process pool, 7 workers"
 
 
 def test_header_lists_sequence_limits_apart(tmp_path: Path) -> None:
     rows = [row(instance="c3_qp-s000-i00", repeats=3, time_limit=10.0),
             row(instance="c3_qp-s000-i00", repeats=1, time_limit=100.0, start="sequence")]
-    timing = _header(_report(tmp_path, make_frame(rows)))["timing"]
+    timing = _header(synthetic_report(tmp_path, make_frame(rows)))["timing"]
     assert timing == ("1 (1 cells), 3 (1 cells) timed repeats after 1 untimed warm-up, median; "
                       "time limit 10 s per solve; sequence cells: 100 s per ADMM run")
