@@ -13,9 +13,9 @@ import pytest
 from c3bench.problems.importers import QPSOLVERS_KEYS, qp_problem
 from c3bench.problems.instance import Problem
 from c3bench.solvers import registry
-from c3bench.solvers.backends._qp_forms import TwoSidedForm
+from c3bench.solvers.backends._qp_forms import ConeForm, TwoSidedForm
 from c3bench.solvers.backends._qpsolvers_status import StatusProbe
-from c3bench.solvers.backends.qpsolvers_backends import BoundRows, _inner_solve_time
+from c3bench.solvers.backends.qpsolvers_backends import _inner_solve_time
 from c3bench.solvers.base import settings_for
 from c3bench.solvers.timing import warm_support
 
@@ -32,10 +32,13 @@ BOUNDED = _qp(P=np.eye(3), q=-np.array([-1.0, 2.0, 3.0]), G=np.array([[1.0, 0.0,
 
 
 def test_bound_rows_are_the_finite_bounds_only() -> None:
-    rows = BoundRows.of(BOUNDED)
-    assert rows.G.shape == (3, 3) and rows.upper.tolist() == [1] and rows.lower.tolist() == [0]
-    np.testing.assert_array_equal(rows.h, [1.0, 1.0, -0.0])
-    z, z_box = rows.split_duals(np.array([0.5, 2.0, 3.0]), 1, 3)
+    rows = ConeForm.from_problem(BOUNDED, dense=True)  # what quadprog is given
+    G, h = rows.matrix[rows.n_eq:], rows.rhs[rows.n_eq:]
+    assert G.shape == (3, 3) and rows.upper_index.tolist() == [1]
+    assert rows.lower_index.tolist() == [0]
+    np.testing.assert_array_equal(h, [1.0, 1.0, -0.0])
+    np.testing.assert_array_equal(G, ConeForm.from_problem(BOUNDED).matrix.toarray())
+    _, z, z_box = rows.split_duals(np.array([0.5, 2.0, 3.0]))
     np.testing.assert_array_equal(z, [0.5])
     np.testing.assert_array_equal(z_box, [-3.0, 2.0, 0.0])  # lower: negative, upper: positive
 

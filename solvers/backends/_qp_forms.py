@@ -181,7 +181,7 @@ class ConeForm:
     variables with a finite upper (lower) bound.
     """
 
-    matrix: sp.csc_matrix
+    matrix: Any
     rhs: np.ndarray
     n: int
     n_eq: int
@@ -190,20 +190,25 @@ class ConeForm:
     lower_index: np.ndarray
 
     @classmethod
-    def from_problem(cls, problem: Problem) -> ConeForm:
-        """Stack ``problem``'s constraints (see the class docstring)."""
+    def from_problem(cls, problem: Problem, dense: bool = False) -> ConeForm:
+        """Stack ``problem``'s constraints (see the class docstring); ``dense``: as a dense
+        array, for a dense solver (no detour through a sparse format)."""
         n = problem.n
         lb, ub = _bounds(problem)
         upper_index = np.flatnonzero(np.isfinite(ub))
         lower_index = np.flatnonzero(np.isfinite(lb))
+        if dense:
+            identity = np.eye(n)
+            matrix: Any = np.vstack([_dense_block(problem.A, n), _dense_block(problem.G, n),
+                                     identity[upper_index], -identity[lower_index]])
+        else:
+            def selector(index: np.ndarray, sign: float) -> sp.csc_matrix:
+                return sp.csc_matrix((np.full(index.size, sign),
+                                      (np.arange(index.size), index)), shape=(index.size, n))
 
-        def selector(index: np.ndarray, sign: float) -> sp.csc_matrix:
-            return sp.csc_matrix((np.full(index.size, sign), (np.arange(index.size), index)),
-                                 shape=(index.size, n))
-
-        matrix = sp.vstack([_block(problem.A, n), _block(problem.G, n),
-                            selector(upper_index, 1.0), selector(lower_index, -1.0)],
-                           format="csc")
+            matrix = sp.vstack([_block(problem.A, n), _block(problem.G, n),
+                                selector(upper_index, 1.0), selector(lower_index, -1.0)],
+                               format="csc")
         rhs = np.concatenate([np.zeros(0) if problem.b is None else problem.b,
                               np.zeros(0) if problem.h is None else problem.h,
                               ub[upper_index], -lb[lower_index]])
