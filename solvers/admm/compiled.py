@@ -169,6 +169,10 @@ class CompiledC3PlusKernel:
         self._solve_compiled = False
         self._generated = GeneratedCode()
         self._plan_stacked: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._called: set[Any] = set()
+        """Compiled functions this kernel has called (compiled for its precision by then)."""
+        self._plan_args: tuple[tuple[Any, ...], tuple[Any, ...], tuple[Any, ...]] | None = None
+        """The objects :meth:`_plan_arguments` last gathered its arguments from, and those."""
 
     def set_box(self, box: tuple[np.ndarray, np.ndarray] | None) -> None:
         """The ``(lower, upper)`` box of one step's ``(x, u)`` (``None``: unbounded)."""
@@ -192,7 +196,7 @@ class CompiledC3PlusKernel:
         x0 = np.asarray(x0, dtype=np.float64)
         if x0.shape != (self.nx,):
             raise InputError(f"x0 must have shape ({self.nx},), got {x0.shape}")
-        if not np.isfinite(x0).all():
+        if not all(map(math.isfinite, x0.tolist())):  # nx entries: cheaper than numpy's
             raise KernelFailure("invalid input", "x0 has non-finite entries", True)
         n = lcs.n_samples
         p = np.asarray(weights, dtype=np.float64)
@@ -203,7 +207,8 @@ class CompiledC3PlusKernel:
         self.flops = 0.0
         self._convert(lcs)
         self._vectors[0] = x0
-        self._p = p.astype(self.dtype)
+        self._p = p if p.dtype == self.dtype and p.flags.c_contiguous else \
+            np.ascontiguousarray(p, dtype=self.dtype)  # read, never written
         self._shared = bool(shared_inputs)
         plan = planned_rhos or ()
         if plan is not self._plan or not is_frozen(plan):  # a frozen plan's keys are known
@@ -273,19 +278,14 @@ class CompiledC3PlusKernel:
         delta, w = self._checked(delta), self._checked(w)
         if self._plan_stacked is None:  # known while the same frozen plan comes back
             self._plan_stacked = self._stack(self._plan, self._plan_keys)[1]
-        bases, two_rho_eta, consts = self._plan_stacked
         shape = self._step_shape  # new arrays every step: the PlanRun's arrays are views
         iterates = np.empty((3, *shape), self.dtype)
         terminal = np.empty((shape[0], self.nx), self.dtype)
-        f, a = self._planned, self._arrays
+        f = self._planned
         self._entries = {}  # the group buffer is overwritten
-        completed, code = self._timed(
-            compiled_plan.run_plan, a["A"], a["Bv"], a["d"], a["MtM"], bases, two_rho_eta,
-            self._PT, self._ridge, bool(self.riccati.jacobi), self._zero, self._one,
-            pattern.column_start, pattern.column_rows, pattern.row_start, pattern.row_columns,
-            f.Y, f.L, f.Sd, f.D, f.ABd, f.failed, self._vectors, a["Mc"], a["Mt"], consts,
-            self._p, self._shared, self._box, ratios, delta, w, iterates, terminal,
-            self._steps(f.shape[0], len(plan) % f.shape[0] or f.shape[0]), self._passes(f))
+        head, tail = self._plan_arguments(pattern, len(plan))
+        completed, code = self._timed(compiled_plan.run_plan, *head, self._p, self._shared,
+                                      self._box, ratios, delta, w, iterates, terminal, *tail)
         group, n = f.shape[0], len(self._p)
         attempted = min(completed + (code != 0), len(plan))  # the failed one included
         factorised = min(-(-attempted // group) * group, len(plan))  # whole groups
@@ -305,6 +305,28 @@ class CompiledC3PlusKernel:
                        terminal if done else None, failure)
 
     # -- internals -----------------------------------------------------------------------------
+    def _plan_arguments(self, pattern: kernels.Structure, planned: int
+                        ) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+        """The arguments of :func:`compiled_plan.run_plan` before ``p`` and after ``terminal``:
+        the same objects while the shapes, the plan, the structure and the group buffer stay
+        (remembered with the objects they were made from, compared by identity), so that a
+        control step does not gather them again."""
+        assert self._planned is not None and self._plan_stacked is not None
+        f, a = self._planned, self._arrays
+        jacobi = bool(self.riccati.jacobi)
+        sources = (a, self._plan_stacked, pattern, f, self._structure_key, planned, jacobi)
+        known = self._plan_args
+        if known is not None and all(x is y for x, y in zip(known[0], sources, strict=True)):
+            return known[1], known[2]
+        bases, two_rho_eta, consts = self._plan_stacked
+        head = (a["A"], a["Bv"], a["d"], a["MtM"], bases, two_rho_eta, self._PT, self._ridge,
+                jacobi, self._zero, self._one, pattern.column_start,
+                pattern.column_rows, pattern.row_start, pattern.row_columns, f.Y, f.L, f.Sd,
+                f.D, f.ABd, f.failed, self._vectors, a["Mc"], a["Mt"], consts)
+        tail = (self._steps(f.shape[0], planned % f.shape[0] or f.shape[0]), self._passes(f))
+        self._plan_args = (sources, head, tail)
+        return head, tail
+
     def _iteration_flops(self) -> int:
         """Flops of one iteration per sample: :func:`passes.solve_flops` (in
         ``_sample_flops``) and, with shared inputs over several samples, the weighted mean of
@@ -494,13 +516,17 @@ class CompiledC3PlusKernel:
     def _timed(self, function: Any, *args: Any) -> Any:
         """Call a compiled function; its first call in this process for this precision
         counts as compile time (numba compiles, or loads from its disk cache, inside it)."""
+        if function in self._called:  # known compiled: no key to build and hash
+            return function(*args)
         key = (function.__name__, self.precision)
         if key in _JIT.compiled:
+            self._called.add(function)
             return function(*args)
         started = time.perf_counter()
         result = function(*args)
         _JIT.seconds += time.perf_counter() - started
         _JIT.compiled.add(key)
+        self._called.add(function)
         return result
 
 

@@ -54,6 +54,9 @@ class CompiledC3Plus:
     """
 
     name = "compiled"
+    step_cache_hits = 0
+    """No step cache: every rho value is factorised (the loop reads these counts)."""
+    step_cache_misses = 0
 
     def __init__(self, mpc: MPC, options: C3Options | None = None,
                  precision: str = Precision.FLOAT64, riccati: RiccatiOptions | None = None,

@@ -86,7 +86,7 @@ def solve_robust(lcs_samples: Sequence[LCS], weights: Sequence[float] | np.ndarr
     """
     options = options or C3Options()
     if len(lcs_samples) < 1:
-        raise ValueError("solve_robust needs at least one LCS sample")
+        raise InputError("solve_robust needs at least one LCS sample")
     S = len(lcs_samples)
     p = normalise_weights(weights, S)
     first = lcs_samples[0]
@@ -152,7 +152,7 @@ class WarmStartController:
         """Keep a successful step's iterates and input; drop them after a failure."""
         if solution.ok:
             self.delta, self.w = solution.delta, solution.w
-            self.last_safe_input = np.asarray(solution.u, dtype=float).copy()
+            self.last_safe_input = np.array(solution.u, dtype=float)  # a copy
         else:
             self.delta = self.w = None
             self.failures += 1

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from c3bench.problems.errors import InputError
 from c3bench.problems.families import weight_vector
 from c3bench.problems.mpc import HorizonLayout
 from c3bench.solvers.admm.kernel import Kernel, KernelFailure, PlanRun, StepInputs
@@ -75,19 +76,24 @@ def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -
     """Sample weights scaled to sum 1, floored at ``floor`` times the largest (uniform if None).
 
     The floor keeps every sample's QP well posed (a zero weight would remove its cost).
+    Weights of the wrong shape, negative, non-finite or all zero raise :class:`InputError`
+    (a ``ValueError``), one line.
     """
     if weights is None:
         return np.full(samples, 1.0 / samples)
     array = np.asarray(weights, dtype=float)
     if array.shape != (samples,):
-        raise ValueError(f"weights must have shape ({samples},), got {array.shape}")
-    total, lowest, largest = array.sum(), array.min(), array.max()
+        raise InputError(f"weights must have shape ({samples},), got {array.shape}")
+    # the ufuncs' reductions directly (what ndarray.sum/min/max call, without their Python
+    # wrappers: this runs every control step)
+    total = np.add.reduce(array)
+    lowest, largest = np.minimum.reduce(array), np.maximum.reduce(array)
     if not (lowest >= 0 and largest < math.inf and total > 0):  # a NaN fails lowest >= 0
-        raise ValueError("weights must be finite, >= 0 and not all zero")
+        raise InputError("weights must be finite, >= 0 and not all zero")
     array = array / total
     # max(a / total) = max(a) / total exactly: rounding a division is monotone
     array = np.maximum(array, floor * (largest / total))
-    normalised: np.ndarray = array / array.sum()
+    normalised: np.ndarray = array / np.add.reduce(array)
     return normalised
 
 
@@ -102,7 +108,11 @@ def cold_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
 def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
                      delta: np.ndarray | None, w: np.ndarray | None, dtype: Any = np.float64
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """The given iterates ((S, T, ns) or (T, ns), checked) or a cold start."""
+    """The given iterates ((S, T, ns) or (T, ns), checked) or a cold start.
+
+    A given array of the full shape and ``dtype`` is used as it is, not copied: no kernel and
+    nothing in the loop writes into its iterates (every update makes new arrays), and a
+    warm-started controller hands over arrays it has just made (:func:`shift_in_time`)."""
     shape = (samples, layout.horizon, layout.step_size)
     cold: tuple[np.ndarray, np.ndarray] | None = None
     if delta is None or w is None:  # a warm start (both given) builds no cold arrays
@@ -118,11 +128,12 @@ def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
         if array.shape == shape[1:]:
             array = np.broadcast_to(array, shape)
         if array.shape != shape:
-            raise ValueError(f"{name} must have shape {shape[1:]} or {shape}, "
+            raise InputError(f"{name} must have shape {shape[1:]} or {shape}, "
                              f"got {array.shape}")
         if not np.isfinite(array).all():
-            raise ValueError(f"{name} has non-finite entries")
-        out.append(np.array(array, dtype=dtype))
+            raise InputError(f"{name} has non-finite entries")
+        out.append(array if array.dtype == dtype and array.flags.writeable
+                   else np.array(array, dtype=dtype))
     return out[0], out[1]
 
 
@@ -415,6 +426,10 @@ def _output(kernel: Kernel, options: C3Options, inputs: StepInputs, delta: Any, 
     first = np.asarray(source)[:, 0, u_slice]
     # the float64 weights' product promotes a float32 ``first`` exactly, as astype would
     u_raw = inputs.weights @ first if inputs.shared_inputs else first.astype(np.float64)
-    if not np.isfinite(u_raw).all():
+    # one shared input has a few entries: Python's check is cheaper than numpy's there
+    finite = all(map(math.isfinite, u_raw.tolist())) if u_raw.ndim == 1 else \
+        bool(np.isfinite(u_raw).all())
+    if not finite:
         return np.array(fallback, dtype=float), None, False, "non-finite input"
-    return np.clip(u_raw, -force_limit, force_limit), u_raw, ok, status
+    # np.clip's result, without its Python wrappers (no NaN gets here)
+    return np.minimum(np.maximum(u_raw, -force_limit), force_limit), u_raw, ok, status
