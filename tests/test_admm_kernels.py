@@ -66,7 +66,10 @@ def test_batched_kernels_agree(states: list[tuple[np.ndarray, np.ndarray]], sche
         weights = [0.2, 0.5, 0.3]
         cold = {name: k.solve(lcs, x, weights) for name, k in kernels.items()}
         delta, w = shift(cold["numpy"].delta, cold["numpy"].w)
+        given = delta.copy(), w.copy()
         warm = {name: k.solve(lcs, x, weights, delta, w) for name, k in kernels.items()}
+        # the loop takes given iterates without a copy: no kernel may write into them
+        assert np.array_equal(delta, given[0]) and np.array_equal(w, given[1])
         for results in (cold, warm):
             reference = results["numpy"]
             assert reference.ok
@@ -100,7 +103,9 @@ def test_reference_kernel_matches_the_batched_one(states: list[tuple[np.ndarray,
         assert _relative(reference.delta, first.delta) <= 1e-6
         delta, w = shift(first.delta, first.w)
         warm_fast = fast.solve(batch, x, None, delta, w)
+        given = delta.copy(), w.copy()
         warm_reference = solve_c3(lcs, mpc, x, options, delta[0], w[0])
+        assert np.array_equal(delta, given[0]) and np.array_equal(w, given[1])  # not written
         assert _relative(warm_reference.delta, warm_fast.delta) <= 1e-6
         assert warm_reference.rho == pytest.approx(warm_fast.rho)
 

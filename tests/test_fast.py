@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from c3bench.problems.config import load_config
+from c3bench.problems.errors import InputError
 from c3bench.problems.instance import Problem, load_instances
 from c3bench.problems.lcs import LCS_MATRICES, LCSBatch
 from c3bench.problems.linearize import linearize
@@ -226,9 +227,12 @@ def test_invalid_inputs_raise(push: SimpleNamespace) -> None:
     case = push.cases[0]
     batch = LCSBatch.from_lcs([case.lcs])
     fast = FastC3Plus(push.mpc)
-    with pytest.raises(ValueError, match="weights"):
+    with pytest.raises(InputError, match="weights"):  # the project's one-line input error
         fast.solve(batch, case.x0, weights=[1.0, 2.0])
-    with pytest.raises(ValueError, match="non-finite"):
+    for bad in ([-1.0], [np.nan], [0.0]):
+        with pytest.raises(InputError, match="weights must be finite, >= 0"):
+            fast.solve(batch, case.x0, weights=bad)
+    with pytest.raises(InputError, match="non-finite"):
         ns = batch.nx + 2 * batch.nlam + batch.nu
         fast.solve(batch, case.x0, delta=np.full((push.mpc.horizon, ns), np.nan))
     with pytest.raises(ValueError, match="c3plus"):
