@@ -53,20 +53,25 @@ cost's ``Q`` and ``R`` and the dynamics (the C3 paper's zero ``G`` block on ``u`
 and ``eta`` carry no cost of their own, so their weights must be positive."""
 
 
-def check_rho(rho: Mapping[str, float], blocks: tuple[str, ...]) -> dict[str, float]:
-    """Validate consensus weights: finite, ``>= 0`` for :data:`ZERO_WEIGHT_BLOCKS` and
-    ``> 0`` for the others; ``ValueError`` names the block."""
+def check_rho(rho: Mapping[str, float], blocks: tuple[str, ...], name: str = "rho",
+              positive: tuple[str, ...] | None = None) -> dict[str, float]:
+    """Validate weights by block (the consensus weights ``rho``, a controller's ``rho0`` or
+    projection weights): finite, ``> 0`` for the blocks in ``positive`` (default: those not
+    in :data:`ZERO_WEIGHT_BLOCKS`) and ``>= 0`` for the others; ``ValueError`` names ``name``
+    and the block."""
+    if positive is None:
+        positive = tuple(block for block in blocks if block not in ZERO_WEIGHT_BLOCKS)
     out: dict[str, float] = {}
     for block in blocks:
         label = str(block)
         if block not in rho:
-            raise ValueError(f"rho is missing the weight for block {label!r}")
+            raise ValueError(f"{name} is missing the weight for block {label!r}")
         value = float(rho[block])
-        zero_ok = block in ZERO_WEIGHT_BLOCKS
-        if not (math.isfinite(value) and (value >= 0 if zero_ok else value > 0)):
-            raise ValueError(f"rho[{label!r}] must be finite and {'>= 0' if zero_ok else '> 0'}"
+        strict = block in positive
+        if not (math.isfinite(value) and (value > 0 if strict else value >= 0)):
+            raise ValueError(f"{name}[{label!r}] must be finite and {'> 0' if strict else '>= 0'}"
                              f", got {rho[block]!r}")
-        out[block] = value
+        out[label] = value
     return out
 
 

@@ -166,7 +166,6 @@ class CompiledC3PlusKernel:
         step for the weighted mean; a planned run's dual rescalings, one product per entry),
         over the structural nonzeros."""
         self._shared = False
-        self._solve_compiled = False
         self._generated = GeneratedCode()
         self._plan_stacked: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._called: set[Any] = set()
@@ -254,11 +253,7 @@ class CompiledC3PlusKernel:
                 f.Y, f.L, f.Sd, f.D, f.ABd, entry.slot, pattern.column_start, pattern.column_rows,
                 pattern.row_start, pattern.row_columns, self._p, self._shared, self._box,
                 self._zero, out[0], z_terminal, out[1], out[2], self._passes(f))
-        if self._solve_compiled:
-            ok = passes.solve_project(*args)
-        else:
-            ok = self._timed(passes.solve_project, *args)
-            self._solve_compiled = True
+        ok = self._timed(passes.solve_project, *args)
         self.flops += shape[0] * self._iteration_flops()
         if not ok:
             raise KernelFailure("non-finite QP solution", f"rho={dict(rho)}", True)

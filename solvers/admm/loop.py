@@ -125,15 +125,16 @@ def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
             out.append(cold[index])
             continue
         array = np.asarray(given)
-        if array.shape == shape[1:]:
+        broadcast = array.shape == shape[1:]
+        if broadcast:
             array = np.broadcast_to(array, shape)
         if array.shape != shape:
             raise InputError(f"{name} must have shape {shape[1:]} or {shape}, "
                              f"got {array.shape}")
         if not np.isfinite(array).all():
             raise InputError(f"{name} has non-finite entries")
-        out.append(array if array.dtype == dtype and array.flags.writeable
-                   else np.array(array, dtype=dtype))
+        out.append(np.array(array, dtype=dtype) if broadcast or array.dtype != dtype
+                   else array)
     return out[0], out[1]
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-from c3bench.problems.families import ZERO_WEIGHT_BLOCKS
+from c3bench.problems.families import check_rho
 from c3bench.problems.names import (
     BLOCKS,
     REFERENCE_ADMM_ITERATIONS,
@@ -93,25 +93,14 @@ def _settings(name: str, value: Any) -> Settings:
     raise ValueError(f"{name} must be a Settings or a profile name, got {value!r}")
 
 
-def check_weights(weights: Mapping[str, float], name: str, positive: tuple[str, ...]
-                  ) -> dict[str, float]:
-    """Weights by block, finite and ``>= 0``; ``> 0`` for the blocks in ``positive``.
-
-    Zero is allowed where the maths allows it
-    (:data:`c3bench.problems.families.ZERO_WEIGHT_BLOCKS`: ``x`` and ``u``); ``rho0`` needs the
-    other blocks positive.
+def check_weights(weights: Mapping[str, float], name: str,
+                  positive: tuple[str, ...] | None = None) -> dict[str, float]:
+    """Weights of every block (:func:`c3bench.problems.families.check_rho`: finite and
+    ``>= 0``, ``> 0`` for the blocks in ``positive``, by default those not in
+    :data:`~c3bench.problems.families.ZERO_WEIGHT_BLOCKS`, where the maths allows no zero)
+    and no other block.
     """
-    out: dict[str, float] = {}
-    for block in BLOCKS:
-        if block not in weights:
-            raise ValueError(f"{name} is missing the weight for block {str(block)!r}")
-        value = float(weights[block])
-        low_ok = value > 0 if block in positive else value >= 0
-        if not (math.isfinite(value) and low_ok):
-            bound = "> 0" if block in positive else ">= 0"
-            raise ValueError(f"{name}[{str(block)!r}] must be finite and {bound}, got "
-                             f"{weights[block]!r}")
-        out[str(block)] = value
+    out = check_rho(weights, BLOCKS, name, positive)
     unknown = set(weights) - set(BLOCKS)
     if unknown:
         raise ValueError(f"{name} has unknown blocks {sorted(unknown)}")
@@ -217,8 +206,7 @@ class C3Options:
         self.rho_schedule = RhoScheduleName(self.rho_schedule)
         self.stopping = Stopping(self.stopping)
         self.output = Output(self.output)
-        self.rho0 = check_weights(self.rho0, "rho0", positive=tuple(
-            str(block) for block in BLOCKS if block not in ZERO_WEIGHT_BLOCKS))
+        self.rho0 = check_weights(self.rho0, "rho0")
         if self.projection_weights is not None:
             self.projection_weights = check_weights(self.projection_weights,
                                                     "projection_weights", positive=())
