@@ -35,11 +35,33 @@ from c3bench.solvers.base import settings_for
     ("unbounded_inaccurate", Failure.UNBOUNDED),  # CVXPY
     ("Initial QP could not be solved due to unboundedness!", Failure.UNBOUNDED),  # qpOASES
     ("time limit reached", Failure.TIMEOUT),
+    ("MaxTime", Failure.TIMEOUT),  # Clarabel
+    ("run time limit reached", Failure.TIMEOUT),  # OSQP
+    ("time limit exceeded", Failure.TIMEOUT),  # QPALM
+    ("HiGHS: Time limit reached", Failure.TIMEOUT),
+    ("solved (inaccurate - reached time_limit_secs)", Failure.TIMEOUT),  # SCS
+    ("time_limit", Failure.TIMEOUT),  # Gurobi
+    ("timelimit", Failure.TIMEOUT),  # SCIP
+    ("Maximum_CpuTime_Exceeded", Failure.TIMEOUT),  # Ipopt
+    ("max time reached", Failure.TIMEOUT),
+    ("quadprog: constraints are inconsistent, no solution", Failure.INFEASIBLE),
     ("MaxIterations", Failure.ERROR),
+    ("maximum iterations reached", Failure.ERROR),  # OSQP
+    ("solved (inaccurate - reached max_iters)", Failure.ERROR),  # SCS
+    ("PROXQP_MAX_ITER_REACHED", Failure.ERROR),
+    ("node_limit", Failure.ERROR),  # Gurobi
+    ("nodelimit", Failure.ERROR),  # SCIP
+    ("LIMIT_EXCEEDED", Failure.ERROR),  # Bonmin: time or node limit, not told apart
     ("not solved (no status kept by qpsolvers)", Failure.ERROR),
 ])
 def test_failure_category_reads_every_wording_alike(status: str, category: Failure) -> None:
     assert failure_category(status) == category
+
+
+def test_clarabels_time_limit_status_is_a_timeout() -> None:
+    clarabel = pytest.importorskip("clarabel")
+    assert failure_category(str(clarabel.SolverStatus.MaxTime)) == Failure.TIMEOUT
+    assert failure_category(str(clarabel.SolverStatus.MaxIterations)) == Failure.ERROR
 
 
 def _qp(name: str, **arrays: np.ndarray) -> Problem:

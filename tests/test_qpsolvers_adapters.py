@@ -62,8 +62,8 @@ def test_quadprog_answer_and_duals_match_a_solver_taking_bounds_natively() -> No
 
 def test_the_solvers_own_setup_is_setup() -> None:
     probe = StatusProbe("daqp")
-    probe.answers.append(((), (None, 0.0, 1, {"setup_time": 9e-4, "solve_time": 1e-4,
-                                              "iterations": 3})))
+    probe.last = ((), (None, 0.0, 1, {"setup_time": 9e-4, "solve_time": 1e-4,
+                                      "iterations": 3}))
     call = SimpleNamespace(solve_time=1e-3)  # qpsolvers' time of the whole daqp.solve
     assert _inner_solve_time("daqp", call, {}, probe) == pytest.approx(1e-4)
     assert _inner_solve_time("scs", call, {"solve_time": 0.4, "setup_time": 1.6},

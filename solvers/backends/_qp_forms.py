@@ -44,6 +44,7 @@ import scipy.sparse as sp
 
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import QP_FAMILIES, Failure, Family, Precision
+from c3bench.solvers.backends._qpsolvers_status import QUADPROG_INCONSISTENT
 from c3bench.solvers.base import Backend, Result
 from c3bench.solvers.timing import Stopwatch
 
@@ -260,20 +261,28 @@ def qp_result(name: str, problem: Problem, watch: Stopwatch, *, found: bool, sta
         failure=Failure.NONE if found else (failure or Failure.ERROR))
 
 
+TIME_LIMIT_WORDS = ("maxtime", "max time", "time exceeded")
+"""Status wording of a reached time limit besides "time" with "limit" (OSQP's "run time limit
+reached", HiGHS's "Time limit reached", QPALM's "time limit exceeded", SCS's "reached
+time_limit_secs", Gurobi's ``time_limit``, SCIP's ``timelimit``): Clarabel's ``MaxTime`` and
+Ipopt's ``Maximum_CpuTime_Exceeded`` / ``Maximum_WallTime_Exceeded``."""
+
+
 def failure_category(status: str) -> Failure:
     """The failure category of a solver's status text, the same for every backend's wording
     (``_`` read as a space, case ignored): ``Failure.INFEASIBLE`` for "infeasible or
     unbounded" (``inforunbd``), ``Failure.UNBOUNDED`` for "unbounded" or "dual infeasible"
     (OSQP, PIQP, ProxQP, QPALM, Clarabel's ``DualInfeasible``, CVXPY, SCS, qpOASES),
-    ``Failure.INFEASIBLE`` for any other "infeasib...", ``Failure.TIMEOUT`` for "time" and
-    "limit", else ``Failure.ERROR``."""
+    ``Failure.INFEASIBLE`` for any other "infeasib..." and for quadprog's
+    :data:`QUADPROG_INCONSISTENT`, ``Failure.TIMEOUT`` for "time" and "limit" or any of
+    :data:`TIME_LIMIT_WORDS`, else ``Failure.ERROR``."""
     text = status.lower().replace("_", " ")
     if "infeasible or unbounded" in text or "inforunbd" in text:
         return Failure.INFEASIBLE
     if "unbounded" in text or "dual infeasib" in text or "dualinfeasib" in text:
         return Failure.UNBOUNDED
-    if "infeasib" in text:
+    if "infeasib" in text or QUADPROG_INCONSISTENT in text:
         return Failure.INFEASIBLE
-    if "time" in text and "limit" in text:
+    if ("time" in text and "limit" in text) or any(word in text for word in TIME_LIMIT_WORDS):
         return Failure.TIMEOUT
     return Failure.ERROR

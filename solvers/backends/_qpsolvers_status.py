@@ -40,8 +40,8 @@ class StatusProbe:
 
     def __init__(self, solver: str) -> None:
         self.solver = solver
-        self.answers: list[tuple[tuple[Any, ...], Any]] = []
-        """``(arguments, result)`` of every recorded call."""
+        self.last: tuple[tuple[Any, ...], Any] | None = None
+        """``(arguments, result)`` of the last recorded call (``None`` before one)."""
 
     @contextmanager
     def watching(self) -> Iterator[None]:
@@ -53,11 +53,10 @@ class StatusProbe:
         owner, attribute = target
         own = attribute in vars(owner)
         original: Callable[..., Any] = getattr(owner, attribute)
-        answers = self.answers
 
         def recorder(*arguments: Any, **keywords: Any) -> Any:
             result = original(*arguments, **keywords)
-            answers.append((arguments, result))
+            self.last = (arguments, result)
             return result
 
         setattr(owner, attribute, recorder)
@@ -83,16 +82,16 @@ class StatusProbe:
             return None
         return None
 
-    def info(self) -> dict[str, Any] | None:
+    def info(self) -> dict[str, Any]:
         """DAQP's ``info`` of the last recorded call (times in seconds, ``iterations``), or
-        ``None``."""
-        if self.solver != "daqp" or not self.answers:
-            return None
+        ``{}`` when none was recorded."""
+        if self.solver != "daqp" or self.last is None:
+            return {}
         try:
-            info = self.answers[-1][1][3]
+            info = self.last[1][3]
         except (IndexError, TypeError):
-            return None
-        return info if isinstance(info, dict) else None
+            return {}
+        return info if isinstance(info, dict) else {}
 
     def status(self, found: bool, warned: Sequence[str] = ()) -> str | None:
         """The solver's own status of the last call, or ``None`` when nothing was recorded
@@ -102,9 +101,9 @@ class StatusProbe:
                 return None
             errors = [text for text in warned if "quadprog raised a ValueError" in text]
             return errors[0] if errors else f"quadprog: {QUADPROG_INCONSISTENT}"
-        if not self.answers:
+        if self.last is None:
             return None
-        arguments, result = self.answers[-1]
+        arguments, result = self.last
         try:
             if self.solver == "daqp":
                 flag = int(result[2])

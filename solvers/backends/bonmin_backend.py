@@ -6,7 +6,10 @@ level 0 (its node log is silenced anyway: it ignores them). In non-default profi
 ``allowable_fraction_gap = tolerance`` (``allowable_gap = 0``), ``integer_tolerance`` and
 ``tol`` follow it; ``node_limit = max_iterations``; ``settings.options`` keys starting with
 ``bonmin.`` are passed on. The answer is polished and checked as every MIQP answer
-(:mod:`c3bench.solvers.backends._miqp`).
+(:mod:`c3bench.solvers.backends._miqp`). CasADi's Bonmin status is one of ``SUCCESS``,
+``INFEASIBLE``, ``CONTINUOUS_UNBOUNDED``, ``LIMIT_EXCEEDED``, ``USER_INTERRUPT`` and
+``MINLP_ERROR``; ``LIMIT_EXCEEDED`` (a time or node limit, not told apart) maps to
+``Failure.ERROR``.
 
 Timing (the contract of :mod:`c3bench.solvers.timing`; rankings use setup + solve): setup is
 building the CasADi expressions and the ``nlpsol`` function; solve is its call (Bonmin's
@@ -124,8 +127,6 @@ class BonminMIQP(MIQPBackend):
         x = point if np.all(np.isfinite(point)) else None
         success = bool(stats.get("success", False)) and status == "SUCCESS"
         failure = Failure.NONE if success else failure_category(status)
-        if failure == Failure.ERROR and "TIME" in status.upper():  # e.g. a CPU-time limit
-            failure = Failure.TIMEOUT
         return finish_point(self.name, problem, settings, x, success and x is not None,
                             f"bonmin: {status}", watch, {}, None, failure)
 

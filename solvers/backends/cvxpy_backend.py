@@ -84,7 +84,7 @@ from c3bench.problems.names import COMPLEMENTARITY_FAMILIES, QP_FAMILIES, Failur
 from c3bench.solvers.backends._miqp import finish_point, pairs_of, solver_time_limit
 from c3bench.solvers.backends._qp_forms import failure_category, qp_result
 from c3bench.solvers.backends.osqp_backend import OSQPBackend
-from c3bench.solvers.backends.scip_backend import SCIP_FAILURES, SCIP_MIN_FEASTOL
+from c3bench.solvers.backends.scip_backend import SCIP_MIN_FEASTOL
 from c3bench.solvers.base import Backend, Result, Settings, WarmStart, require_module
 from c3bench.solvers.output import quiet_stdout
 from c3bench.solvers.registry import register
@@ -484,7 +484,7 @@ class CvxpyScip(CvxpyBackend):
             if found and ratio >= BIG_M_ACTIVE:
                 found = False
                 status += f"; big-M bound active ({ratio:.3g} of M)"
-        failure = SCIP_FAILURES.get(solved.native_status, Failure.NONE if found else Failure.ERROR)
+        failure = Failure.NONE if found else failure_category(solved.native_status)
         return finish_point(self.name, problem, settings, x, found, f"cvxpy_scip: {status}",
                             solved.watch, diagnostics,
                             _iterations(model.problem.solver_stats), failure)

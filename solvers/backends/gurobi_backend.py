@@ -34,6 +34,7 @@ from c3bench.solvers.backends._miqp import (
     pairs_of,
     solver_time_limit,
 )
+from c3bench.solvers.backends._qp_forms import failure_category
 from c3bench.solvers.base import Result, Settings, WarmStart, require_module
 from c3bench.solvers.registry import register
 from c3bench.solvers.timing import Stopwatch
@@ -129,10 +130,7 @@ class GurobiMIQP(MIQPBackend):
             diagnostics["primal_bound"] = float(model.ObjVal)
             diagnostics["dual_bound"] = float(model.ObjBound)
         found = model.Status == GRB.OPTIMAL and x is not None
-        failure = {"time_limit": Failure.TIMEOUT, "infeasible": Failure.INFEASIBLE,
-                   "infeasible_or_unbounded": Failure.INFEASIBLE,
-                   "unbounded": Failure.UNBOUNDED}.get(
-            status, Failure.NONE if found else Failure.ERROR)
+        failure = Failure.NONE if found else failure_category(status)
         iterations = int(model.NodeCount)
         model.dispose()
         env.dispose()

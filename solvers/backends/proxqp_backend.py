@@ -154,7 +154,7 @@ class ProxQPBackend(QPBackend):
         duals = form.split_duals(np.concatenate([np.asarray(results.y).ravel(),
                                                  np.asarray(results.z).ravel()]))
         return qp_result(self.name, problem, watch, found=found, status=status,
-                         failure=failure_category(status.replace("_", " ")), x=results.x,
+                         failure=failure_category(status), x=results.x,
                          duals=duals, iterations=info.iter,
                          diagnostics={"solver_primal_residual": float(info.pri_res),
                                       "solver_dual_residual": float(info.dua_res)})

@@ -77,7 +77,7 @@ from c3bench.problems.errors import BackendUnavailable
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import Failure
 from c3bench.solvers.backends._qp_forms import ConeForm, QPBackend, failure_category, qp_result
-from c3bench.solvers.backends._qpsolvers_status import QUADPROG_INCONSISTENT, StatusProbe
+from c3bench.solvers.backends._qpsolvers_status import StatusProbe
 from c3bench.solvers.backends._warm_vectors import full_bounds
 from c3bench.solvers.base import Result, Settings, WarmStart, require_module
 from c3bench.solvers.output import quiet_stdout
@@ -138,10 +138,9 @@ def _inner_solve_time(solver: str, solution: Any, extras: dict[str, Any],
     """The solver's own solve time (s), without its setup: DAQP's and SCS's own split
     (qpsolvers' ``solve_time`` wraps their whole call, which builds and factorises first;
     the contract books that as setup), else qpsolvers' ``solve_time``."""
-    info = probe.info()
     try:
-        if info is not None:  # DAQP
-            return float(info["solve_time"])
+        if solver == "daqp":
+            return float(probe.info()["solve_time"])
         if solver == "scs":
             return float(extras["solve_time"]) / 1e3  # SCS reports milliseconds
     except (KeyError, TypeError, ValueError):
@@ -150,13 +149,12 @@ def _inner_solve_time(solver: str, solution: Any, extras: dict[str, Any],
 
 
 def _qpsolvers_iterations(solver: str, extras: dict[str, Any],
-                          probe: StatusProbe | None = None) -> int | None:
+                          probe: StatusProbe) -> int | None:
     """Iteration count from a qpsolvers ``Solution.extras`` or, for DAQP, the recorded
     call's ``info`` (``None`` where not kept)."""
-    info = probe.info() if probe is not None else None
     try:
-        if info is not None:  # DAQP
-            return int(info["iterations"])
+        if solver == "daqp":
+            return int(probe.info()["iterations"])
         if solver in ("piqp", "qpalm"):
             return int(extras["info"].iter)
         if solver == "scs":
@@ -179,11 +177,11 @@ guess 1e4 away; QPALM's own ``warm_start`` with the exact answer takes 7 -> 5 it
 
 
 def _qpsolvers_status(solver: str, found: bool, extras: dict[str, Any],
-                      probe: StatusProbe | None = None, warned: Sequence[str] = ()) -> str:
+                      probe: StatusProbe, warned: Sequence[str] = ()) -> str:
     """The solver's own status: where qpsolvers keeps it (PIQP, QPALM, SCS), else what the
     ``probe`` recorded (DAQP's exit flag, HiGHS's model status, quadprog's message:
     :mod:`._qpsolvers_status`)."""
-    recorded = probe.status(found, warned) if probe is not None else None
+    recorded = probe.status(found, warned)
     if recorded is not None:
         return recorded
     try:
@@ -263,12 +261,12 @@ class QpsolversBackend(QPBackend):
             options = self.options(settings)
         probe = StatusProbe(self.spec.solver)
         try:
-            with watch.lap("call"), warnings.catch_warnings(record=True) as caught, \
-                    probe.watching():
+            with probe.watching(), warnings.catch_warnings(record=True) as caught:
                 # quadprog's message comes as a warning (_qpsolvers_status); others: ignored
                 warnings.simplefilter("always" if self.spec.solver == "quadprog" else "ignore")
-                solution = qpsolvers.solve_problem(qp, solver=self.spec.solver,
-                                                   initvals=initvals, **options)
+                with watch.lap("call"):  # the solver call only, as in the other backends
+                    solution = qpsolvers.solve_problem(qp, solver=self.spec.solver,
+                                                       initvals=initvals, **options)
         except (qpsolvers.QPError, ValueError) as error:
             return qp_result(self.name, problem, watch, found=False,
                              status=f"{type(error).__name__}: {error}",
@@ -289,10 +287,8 @@ class QpsolversBackend(QPBackend):
             if rows is not None:  # quadprog: the finite bounds were rows of G
                 rows_z = _sized(solution.z, rows.n_nonnegative)
                 duals = rows.split_duals(np.concatenate([duals[0], rows_z]))
-        failure = Failure.INFEASIBLE if status.endswith(QUADPROG_INCONSISTENT) else \
-            failure_category(status)
         return qp_result(self.name, problem, watch, found=found, status=status,
-                         failure=failure, x=solution.x, duals=duals,
+                         failure=failure_category(status), x=solution.x, duals=duals,
                          iterations=_qpsolvers_iterations(self.spec.solver, extras, probe),
                          setup_time=watch.get("setup") + watch.get("call") - inner_solve,
                          solve_time=inner_solve)

@@ -40,6 +40,7 @@ from c3bench.solvers.backends._miqp import (
     pairs_of,
     solver_time_limit,
 )
+from c3bench.solvers.backends._qp_forms import failure_category
 from c3bench.solvers.base import Result, Settings, WarmStart
 from c3bench.solvers.output import quiet_stdout
 from c3bench.solvers.registry import register
@@ -47,12 +48,6 @@ from c3bench.solvers.timing import Stopwatch
 
 SCIP_MIN_FEASTOL = 1e-8
 """Smallest feasibility tolerance given to SCIP (below it SoPlex asks for GMP)."""
-
-SCIP_FAILURES: dict[str, Failure] = {"timelimit": Failure.TIMEOUT,
-                                     "infeasible": Failure.INFEASIBLE,
-                                     "inforunbd": Failure.INFEASIBLE,
-                                     "unbounded": Failure.UNBOUNDED}
-"""Failure categories of SCIP's statuses (any other unsuccessful status is an error)."""
 
 
 def apply_settings(model: Any, settings: Settings, time_limit: float) -> None:
@@ -157,7 +152,7 @@ class ScipMIQP(MIQPBackend):
             best = model.getBestSol()
             x = np.array([model.getSolVal(best, var) for var in z])
         found = status in ("optimal", "gaplimit") and x is not None
-        failure = SCIP_FAILURES.get(status, Failure.NONE if found else Failure.ERROR)
+        failure = Failure.NONE if found else failure_category(status)
         return finish_point(self.name, problem, settings, x, found, f"scip: {status}", watch,
                             diagnostics, int(model.getNNodes()), failure)
 
