@@ -2,8 +2,9 @@
 true plant (``l = 0.30``) with its first input held for ``dt`` (zero-order hold).
 
 The plant runs at its own step (1 ms); after every plant step a :class:`ContactProbe`
-measures the ball-cube signed distance and the ball's height, so that contact between two
-recorded states (one per control step) is seen (:class:`PlantContact`).
+measures the ball-cube signed distance, the ball's height and the height of the cube's lowest
+point above the table, so that contact and a cube in the air between two recorded states (one
+per control step) are seen (:class:`PlantContact`).
 
 Outcome metrics (docs/closed_loop.md): cube angle error at the end, control-step wall
 time (median, p95; LCS build and solve apart), NaN / fallback counts, the physical metrics and
@@ -36,7 +37,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -44,13 +45,14 @@ import mujoco
 import numpy as np
 
 from c3bench.bench.closed_loop_checks import check_backends, control_steps
-from c3bench.bench.closed_loop_labels import physical_label
+from c3bench.bench.closed_loop_labels import LabelRules, physical_label
 from c3bench.bench.closed_loop_metrics import (
     PhysicalMetrics,
     PlantContact,
     RunSignals,
     SuccessRules,
     physical_metrics,
+    pivot_slip,
 )
 from c3bench.bench.closed_loop_policy import (
     CONTROLLERS,
@@ -65,7 +67,11 @@ from c3bench.bench.closed_loop_policy import (
     step_backends,
     step_failures,
 )
-from c3bench.bench.closed_loop_probe import GAP_RANGE, ContactProbe  # re-exported
+from c3bench.bench.closed_loop_probe import (  # ContactProbe re-exported
+    GAP_RANGE,
+    ContactProbe,
+    box_clearance,
+)
 from c3bench.bench.closed_loop_records import (  # re-exported
     records_frame,
     render_run,
@@ -101,7 +107,7 @@ FAILURE_MODES: dict[int, str] = {
 class FailureRules:
     """Thresholds of the failure-mode labels (see the module docstring)."""
 
-    pivot_slip: float = SuccessRules.pivot_slip  # one threshold, the success rule's
+    pivot_slip: float = SuccessRules.pivot_slip  # the success rule's; summarise passes its own
     still_angle: float = 0.05
     still_shift: float = 0.01
     tip_start: float = 0.05
@@ -145,10 +151,17 @@ def cube_geometry(scene: Scene, x: np.ndarray, data: mujoco.MjData | None = None
     ball_local = rotation.T @ (ball_world - data.xpos[cube])
     box = scene.geom("cube")
     gap = mujoco.mj_geomDistance(scene.model, data, scene.geom("ball"), box, GAP_RANGE, None)
-    lowest = data.geom_xpos[box][2] - np.abs(data.geom_xmat[box][6:9]) @ \
-        scene.model.geom_size[box]
+    clearance = box_clearance(data.geom_xpos[box].item(2), data.geom_xmat[box][6:9].tolist(),
+                              scene.model.geom_size[box].tolist(),
+                              float(scene.config.scene.table_height))
     return {"far_corner": far, "ball_local": ball_local, "ball_gap": float(gap),
-            "clearance": float(lowest) - scene.config.scene.table_height}
+            "clearance": clearance}
+
+
+def _state_geometry(scene: Scene, states: np.ndarray) -> list[dict[str, Any]]:
+    """:func:`cube_geometry` at every state (one scratch ``MjData`` for all)."""
+    scratch = mujoco.MjData(scene.model)
+    return [cube_geometry(scene, x, scratch) for x in states]
 
 
 def advance(plant: Plant, u: np.ndarray, duration: float, probe: ContactProbe,
@@ -164,16 +177,18 @@ def advance(plant: Plant, u: np.ndarray, duration: float, probe: ContactProbe,
 
 
 def label_failure_mode(trajectory: Trajectory, scene: Scene, target_angle: float,
-                       success_tolerance: float,
-                       rules: FailureRules | None = None) -> tuple[int, str]:
-    """The failure mode (0 = success) of a closed-loop trajectory, with the rule that fired."""
+                       success_tolerance: float, rules: FailureRules | None = None,
+                       geometry: Sequence[dict[str, Any]] | None = None) -> tuple[int, str]:
+    """The failure mode (0 = success) of a closed-loop trajectory, with the rule that fired.
+
+    ``geometry``: :func:`cube_geometry` at every recorded state (computed here without it).
+    """
     rules = rules or FailureRules()
     states = trajectory.states
     angles = np.array([scene.cube_angle(x) for x in states])
-    scratch = mujoco.MjData(scene.model)
-    geometry = [cube_geometry(scene, x, scratch) for x in states]
-    far_x = np.array([g["far_corner"][0] for g in geometry])
-    slip = float(np.max(np.abs(far_x - far_x[0])))
+    if geometry is None:
+        geometry = _state_geometry(scene, states)
+    slip = pivot_slip(np.array([g["far_corner"][0] for g in geometry]))
     error = abs(angles[-1] - target_angle)
     if error <= success_tolerance and slip < rules.pivot_slip:
         return 0, f"|theta - theta*| = {error:.3f} rad at the end, pivot slip {slip:.3f} m"
@@ -296,15 +311,16 @@ def _plan_fields(info: dict[str, Any], ok: bool) -> dict[str, np.ndarray | None]
 def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0,
              x0: np.ndarray | None = None, plant_scene: Scene | None = None,
              progress: Callable[[int, int], None] | None = None,
-             contact_gap: float | None = None, away_gap: float | None = None
-             ) -> tuple[Trajectory, list[StepRecord]]:
+             contact_gap: float | None = None, away_gap: float | None = None,
+             air_gap: float | None = None) -> tuple[Trajectory, list[StepRecord]]:
     """Run ``policy`` on the MuJoCo plant for ``duration`` seconds, replanning every ``dt``.
 
     After every plant step a :class:`ContactProbe` updates the period's contact statistics
     (``Trajectory.plant``): touching at signed distance ``<= contact_gap`` (default
     :attr:`SuccessRules.contact_gap`), away at ``> away_gap`` (default
     :attr:`FailureRules.contact_gap`), and the cube airborne when its lowest point is more
-    than :attr:`~bench.closed_loop_labels.LabelRules.air_gap` above the table.
+    than ``air_gap`` above the table (default
+    :attr:`~bench.closed_loop_labels.LabelRules.air_gap`).
 
     A policy that returns a non-finite input, or raises, is a failed step: the last safe input
     is held instead and the step is counted (``ok = False``, with its ``fallback_reason``).
@@ -324,7 +340,8 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
     scratch = mujoco.MjData(scene.model)
     probe = ContactProbe(scene, SuccessRules().contact_gap if contact_gap is None
                          else contact_gap,
-                         FailureRules().contact_gap if away_gap is None else away_gap)
+                         FailureRules().contact_gap if away_gap is None else away_gap,
+                         LabelRules().air_gap if air_gap is None else air_gap)
     states, inputs, times = [state], [], [0.0]
     gaps = [cube_geometry(scene, state, scratch)["ball_gap"]]
     for k in range(steps):
@@ -382,9 +399,10 @@ def simulate(policy: Policy, config: Config | None = None, duration: float = 2.0
     return trajectory, records
 
 
-def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene
-                ) -> RunSignals:
-    """The per-state signals of a run that :func:`physical_metrics` needs."""
+def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
+                geometry: Sequence[dict[str, Any]] | None = None) -> RunSignals:
+    """The per-state signals of a run that :func:`physical_metrics` needs (``geometry``: as
+    in :func:`label_failure_mode`)."""
     states = trajectory.states
     ball = scene.ball_position_indices
     velocity = states[:, scene.nq + ball - (scene.nq - scene.nv)]
@@ -397,8 +415,8 @@ def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene
 
     commanded = np.array([r.input if r.commanded is None else r.commanded for r in records]
                          ).reshape(len(records), scene.nu)
-    scratch = mujoco.MjData(scene.model)
-    geometry = [cube_geometry(scene, x, scratch) for x in states]
+    if geometry is None:
+        geometry = _state_geometry(scene, states)
     half = scene.l / 2
     over_top = [bool(g["ball_local"][2] > half and np.all(np.abs(g["ball_local"][:2]) <= half))
                 for g in geometry]  # above the top face's plane, within its extent
@@ -421,10 +439,14 @@ def run_signals(trajectory: Trajectory, records: list[StepRecord], scene: Scene
 def summarise(trajectory: Trajectory, records: list[StepRecord], scene: Scene,
               config: Config, rules: SuccessRules | None = None) -> ClosedLoopOutcome:
     """Outcome metrics of a run (see the module docstring): ``success`` is the physical
-    metrics' (:mod:`bench.closed_loop_metrics`, under ``rules``)."""
+    metrics' (:mod:`bench.closed_loop_metrics`, under ``rules``), whose pivot slip threshold
+    the failure modes take too."""
     target = config.mpc.target_angle
-    mode, reason = label_failure_mode(trajectory, scene, target, config.mpc.success_tolerance)
-    signals = run_signals(trajectory, records, scene)
+    geometry = _state_geometry(scene, trajectory.states)  # once, for the modes and the metrics
+    mode, reason = label_failure_mode(
+        trajectory, scene, target, config.mpc.success_tolerance,
+        FailureRules(pivot_slip=(rules or SuccessRules()).pivot_slip), geometry)
+    signals = run_signals(trajectory, records, scene, geometry)
     metrics = physical_metrics(signals, target, config.mpc.success_tolerance, rules)
     label, label_reason = physical_label(metrics, signals, target, success_rules=rules)
     final = scene.cube_angle(trajectory.states[-1])

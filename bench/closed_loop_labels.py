@@ -122,12 +122,6 @@ def _touched(metrics: PhysicalMetrics, signals: RunSignals, rules: LabelRules) -
         float(np.max(np.abs(signals.angles))) > rules.nudge_angle
 
 
-def _over_the_top(metrics: PhysicalMetrics, signals: RunSignals, rules: LabelRules) -> bool:
-    """Whether the ball touched the cube and was over its top face at some recorded state."""
-    over = bool(np.any(signals.ball_above_top)) if signals.ball_above_top.size else False
-    return over and _touched(metrics, signals, rules)
-
-
 def physical_label(metrics: PhysicalMetrics, signals: RunSignals, target: float,
                    rules: LabelRules | None = None,
                    success_rules: SuccessRules | None = None) -> tuple[str, str]:
@@ -141,9 +135,10 @@ def physical_label(metrics: PhysicalMetrics, signals: RunSignals, target: float,
     if metrics.success:
         kind = "gentle" if metrics.gentle_success else "past the balance angle"
         return "success", f"held {metrics.hold_time:.2f} s ({kind})"
-    over = _over_the_top(metrics, signals, rules)
+    touched = _touched(metrics, signals, rules)
+    over = touched and bool(np.any(signals.ball_above_top))  # over the top face, once touched
     if metrics.peak_angle < rules.still_angle and slip < rules.still_shift and not over:
-        touch = "" if _touched(metrics, signals, rules) else ", ball never touched it"
+        touch = "" if touched else ", ball never touched it"
         return "no motion", (f"peak {metrics.peak_angle:.3f} rad, corner moved {slip:.3f} m"
                              + touch)
     ball_x = signals.states[:, 3]

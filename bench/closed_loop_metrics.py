@@ -74,7 +74,8 @@ class SuccessRules:
         Slide of the pivot (the cube's far bottom corner) along the table at and beyond which
         the run is no success (m): the cube was pushed, not tipped about its edge. The labels
         of :mod:`bench.closed_loop_labels` call such a run ``cube slid`` with this same
-        threshold, and :class:`bench.closed_loop.FailureRules` takes it as its default.
+        threshold, and :class:`bench.closed_loop.FailureRules` takes it as its default
+        (:func:`bench.closed_loop.summarise` passes a custom one on).
     """
 
     hold_time: float = 1.0
@@ -359,11 +360,11 @@ def _penetrations(signals: RunSignals) -> tuple[float, float]:
             max(0.0, -float(np.min(np.concatenate(heights)))))
 
 
-def pivot_slip(signals: RunSignals) -> float:
-    """``max |x_pivot - x_pivot(0)|`` over the recorded states (m; NaN when the signals
-    carry no pivot)."""
-    pivot = signals.pivot_x
-    return float(np.max(np.abs(pivot - pivot[0]))) if pivot.size else math.nan
+def pivot_slip(pivot_x: np.ndarray) -> float:
+    """``max |x_pivot - x_pivot(0)|`` over the recorded states' pivot x (m; NaN when there is
+    none: :attr:`RunSignals.pivot_x` not measured). The failure modes of
+    :func:`bench.closed_loop.label_failure_mode` take it too."""
+    return float(np.max(np.abs(pivot_x - pivot_x[0]))) if pivot_x.size else math.nan
 
 
 def _settling(signals: RunSignals, target: float, band: float) -> tuple[float, float]:
@@ -417,7 +418,7 @@ def physical_metrics(signals: RunSignals, target: float, band: float,
     clipped = int(np.sum(np.any(np.abs(signals.commanded) > signals.force_limit + 1e-9,
                                 axis=1))) if signals.commanded.size else 0
     duration = float(signals.times[-1] - signals.times[0])
-    slip = pivot_slip(signals)
+    slip = pivot_slip(signals.pivot_x)
     success = (duration >= rules.min_duration - 1e-9 and hold >= rules.hold_time - 1e-9
                and slip < rules.pivot_slip  # False when not measured (NaN)
                and max(cube_pen, table_pen) <= rules.max_penetration)

@@ -147,6 +147,12 @@ def plot_step_times(directory: Path, frame: pd.DataFrame, path: Path) -> Path:
     return _save(figure, path)
 
 
+def _pivot_clause() -> str:
+    """The pivot-slip part of the success rule, as both reports state it."""
+    return ("the cube's far bottom edge (the pivot) slid less than "
+            f"{100 * SuccessRules().pivot_slip:g} cm along the table")
+
+
 def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
     """``report.md`` and ``figures/*.png`` of a closed-loop suite or sweep."""
     directory = run.directory
@@ -159,8 +165,7 @@ def write_report(run: SuiteRun, title: str, render: bool = True) -> Path:
              f"Plant: MuJoCo, true cube l = {config.scene.cube_side} m, target angle "
              f"{target} rad. Success: a run of at least 3 s whose angle stayed within "
              f"{config.mpc.success_tolerance} rad of the target for its last second (the "
-             "case's hold time), the cube's far bottom edge (the pivot) slid less than "
-             f"{100 * SuccessRules().pivot_slip:g} cm along the table, the ball never more "
+             f"case's hold time), {_pivot_clause()}, the ball never more "
              "than 5 mm into the cube or the table; gentle: a success that never passed "
              "the balance angle pi/4 (docs/closed_loop.md). Failure mode 0 is the older "
              "rule (angle within the tolerance at the end, no pivot slip). "
@@ -233,15 +238,14 @@ def _outcome_cell(row: pd.Series) -> str:
     """A run's outcome as the outcomes table gives it: ``success`` (``gentle success``) when
     :mod:`bench.closed_loop_metrics`' rule holds, else its label (:mod:`bench.closed_loop_labels`;
     ``error`` when the run itself failed), with the angle error at the end."""
-    error = str(row.get("error", "") or "")
-    label = str(row.get("label", "") or row.get("failure_label", "") or "")
-    if error or label == "error":
+    error, label = row.get("error", ""), row.get("label", "")
+    if (isinstance(error, str) and error) or label == "error":
         return "error"
     success = row.get("success", False)
     if isinstance(success, bool | np.bool_) and bool(success):
         text = "gentle success" if bool(row.get("gentle_success", False)) else "success"
     else:
-        text = label if label and label != "success" else "failure"
+        text = label if isinstance(label, str) and label else "failure"
     angle = row.get("angle_error", math.nan)
     if isinstance(angle, int | float) and math.isfinite(angle):
         text += f" ({angle:.2f})"
@@ -440,9 +444,8 @@ def write_trials_report(run: SuiteRun, suite: ClosedLoopSuite, trials: int,
              "mass +-20 %, friction +-25 %, plant cube side U[0.28, 0.32] m, a fresh model "
              "seed per trial for the robust controllers (docs/closed_loop.md). Success: the "
              f"angle within {config.mpc.success_tolerance} rad of the target "
-             f"{config.mpc.target_angle} rad for the last {suite.hold_time:g} s, the "
-             "cube's far bottom edge (the pivot) slid less than "
-             f"{100 * SuccessRules().pivot_slip:g} cm along the table, and no "
+             f"{config.mpc.target_angle} rad for the last {suite.hold_time:g} s, "
+             f"{_pivot_clause()}, and no "
              "penetration deeper than 5 mm; gentle: a success that never passed the balance "
              "angle pi/4. Rates with Wilson score 95 % intervals (E. B. Wilson, JASA 22 "
              "(1927) 209-212). " + _load_sentence(frame), ""]

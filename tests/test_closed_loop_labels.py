@@ -5,7 +5,6 @@ the rows no recorded run covers."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -63,9 +62,14 @@ def test_the_strike_topple_run_shows_its_physics() -> None:
 
 def _run(angles: np.ndarray, ball_x: np.ndarray | None = None,
          gap: float | np.ndarray = 0.0, ball_z: np.ndarray | None = None,
-         plant: PlantContact | None = None) -> tuple[str, Any]:
+         plant: PlantContact | None = None, shift: np.ndarray | None = None
+         ) -> tuple[str, Any]:
+    """Label a run through the target states at ``angles``, the cube's x shifted by ``shift``
+    (default none)."""
     scene = build_scene(config=CONFIG)
-    states = np.array([target_state(scene, float(a)) for a in angles])
+    shifts = np.zeros(len(angles)) if shift is None else shift
+    states = np.array([target_state(scene, float(a), float(x))
+                       for a, x in zip(angles, shifts, strict=True)])
     if ball_x is not None:
         states[:, 3] = ball_x
     if ball_z is not None:
@@ -182,20 +186,12 @@ def test_a_slid_cube_held_in_the_band_is_no_success() -> None:
     slid 3.5 cm along the table in the first 0.3 s, then the cube tipped to 0.49 rad and
     held there for 2.4 s. The old rule called it a success while its failure mode said
     "fast sliding past the edge"; it is a failure, and its label says the cube slid."""
-    scene = build_scene(config=CONFIG)
     n = 61
     angles = np.concatenate([np.zeros(4), np.linspace(0, 0.49, 8), np.full(n - 12, 0.49)])
     shift = np.minimum(np.arange(n), 7) * 0.005  # the pivot slides 3.5 cm by 0.35 s
-    states = np.array([target_state(scene, float(a), float(x))
-                       for a, x in zip(angles, shift, strict=True)])
-    times = np.arange(n) * 0.05
-    trajectory = Trajectory(times, states, np.zeros((n - 1, 2)), np.zeros(n))
-    records = [StepRecord(float(t), x, np.zeros(2), 0.0, 0.0, True, 0)
-               for t, x in zip(times[:-1], states[:-1], strict=True)]
-    outcome = summarise(trajectory, records, scene, CONFIG)
+    _, outcome = _run(angles, shift=shift)
     assert outcome.metrics.pivot_slip == pytest.approx(0.035)
     assert outcome.metrics.hold_time > 2.0 and not outcome.success
     assert outcome.label == "cube slid" and "slid 3.5 cm" in outcome.label_reason
     assert outcome.failure_mode == 1  # the older rule agrees: sliding
-    still = np.array([target_state(scene, float(a)) for a in angles])
-    assert summarise(replace(trajectory, states=still), records, scene, CONFIG).success
+    assert _run(angles)[1].success  # the same angles, the cube not shifted

@@ -131,13 +131,14 @@ def test_advance_steps_the_plant_as_plant_step_does() -> None:
         reference, mine = Plant(SCENE), Plant(SCENE)
         reference.reset(x0)
         mine.reset(x0)
-        probe = ContactProbe(SCENE, 0.002, 0.02)
+        probe = ContactProbe(SCENE, 0.002, 0.02, LabelRules().air_gap)
         for _ in range(4):
             expected = reference.step(u, 0.05) if control is None else \
                 reference.step_with(lambda x, s, c=control: c(x, s, u), 0.05)
             np.testing.assert_array_equal(advance(mine, u, 0.05, probe, control), expected)
     with pytest.raises(ValueError, match="multiple of the plant step"):
-        advance(Plant(SCENE), u, 0.0505, ContactProbe(SCENE, 0.002, 0.02))
+        advance(Plant(SCENE), u, 0.0505,
+                ContactProbe(SCENE, 0.002, 0.02, LabelRules().air_gap))
 
 
 def test_simulate_records_one_plant_contact_entry_per_period() -> None:
