@@ -41,21 +41,14 @@ import numpy as np
 import pandas as pd
 
 from c3bench.bench.metrics import (
-    UNVERIFIED_VERDICT,
     accuracy_columns,
     charged_times,
     geometric_mean,
     has_reference,
+    unverified_cells,
     with_variants,
     worst_residual,
 )
-
-
-def unverified_cells(frame: pd.DataFrame) -> np.ndarray:
-    """Per row, whether it is *unverified* (:func:`bench.metrics.is_unverified`): feasible,
-    it passed every residual check, but no verified reference optimum exists. Such a row is
-    neither a success nor a failure: every table counts it apart."""
-    return (frame["verdict"].astype(str) == UNVERIFIED_VERDICT).to_numpy(dtype=bool)
 
 
 def solved_accuracy(frame: pd.DataFrame) -> np.ndarray:
@@ -201,7 +194,7 @@ def worst_figure(row: dict[str, object]) -> tuple[str, float, float]:
 def claimed_but_wrong(frame: pd.DataFrame) -> list[ClaimedWrong]:
     """Per (family, variant, solver) with at least one cell whose solver reported
     ``found=True`` while the verdict failed: counts and the worst example. A feasible cell
-    whose optimality is only unverified (:func:`bench.metrics.is_unverified`) is not wrong."""
+    whose optimality is only unverified (:func:`bench.metrics.unverified_cells`) is not wrong."""
     frame = with_variants(frame)
     out = []
     for (family, variant, solver), group in frame.groupby(

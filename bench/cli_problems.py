@@ -152,12 +152,16 @@ def cmd_problems_import(args: argparse.Namespace) -> int:
     except InputError as error:
         raise InputError(f"--out: {error}") from error
     if args.module is not None:
-        with warnings.catch_warnings(record=True) as caught:  # the user's code may warn
-            problems = read_module(args.module)
-        for warning in caught:
-            message = " ".join(str(warning.message).split())
-            print(f"warning: --module {args.module}: {warning.category.__name__}: {message} "
-                  f"({Path(warning.filename).name}:{warning.lineno})", file=sys.stderr)
+        caught: list[warnings.WarningMessage] = []
+        try:
+            with warnings.catch_warnings(record=True) as caught:  # the user's code may warn
+                problems = read_module(args.module)
+        finally:  # also when it raises: the warnings may say why
+            for warning in caught:
+                message = " ".join(str(warning.message).split())
+                print(f"warning: --module {args.module}: {warning.category.__name__}: "
+                      f"{message} ({Path(warning.filename).name}:{warning.lineno})",
+                      file=sys.stderr)
         source = f"module {args.module}"
     else:
         problems, source = read_npz_source(Path(args.source)), str(args.source)

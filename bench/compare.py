@@ -33,10 +33,10 @@ from c3bench.bench.metrics import (
     charged_times,
     family_label,
     geometric_mean,
-    is_unverified,
     ranked_time,
     ranked_time_label,
     shifted_geometric_mean,
+    unverified_cells,
     with_variants,
     worst_residual,
 )
@@ -140,8 +140,8 @@ def _compare_group(peers: tuple[str, ...], group_a: pd.DataFrame, group_b: pd.Da
 
 def _unverified(group: pd.DataFrame) -> int:
     """Cells of ``group`` that are feasible but without a verified optimum
-    (:func:`bench.metrics.is_unverified`)."""
-    return int(sum(is_unverified(row) for row in group.to_dict("records")))
+    (:func:`bench.metrics.unverified_cells`)."""
+    return int(unverified_cells(group).sum())
 
 
 def compare_frame(frame: pd.DataFrame, a: str, b: str) -> list[Comparison]:

@@ -32,6 +32,12 @@ from c3bench.problems.lcs import LCS_MATRICES, LCSBatch
 from c3bench.problems.mpc import MPC
 
 MPC_FIELDS: tuple[str, ...] = ("Q", "R", "Q_f", "x_target", "horizon", "dt", "force_limit")
+GPU_NUMBERS: tuple[str, ...] = ("samples", "admm_ms_median", "admm_ms_p95", "load_avg")
+"""The number fields of a row of :func:`run` that the perf report reads."""
+GPU_FIELDS: tuple[str, ...] = ("backend", "device", "device_kind", "precision", *GPU_NUMBERS)
+"""The fields of a row of :func:`run` that the perf report reads
+(:func:`bench.perf_report.gpu_rows` checks them); a row also has ``ok``, ``repeats`` and
+``jax``."""
 
 
 def export(out: Path, samples: Sequence[int], states: int = 4, seed: int = 0) -> list[Path]:

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from c3bench.bench import perf_store, store
+from c3bench.bench.gpu_perf import GPU_FIELDS, GPU_NUMBERS
 from c3bench.bench.perf import PERF_FIGURE, REFERENCE_STEP_MS, TARGET_STEP_MS
 from c3bench.bench.perf_store import CacheState
 from c3bench.bench.perf_summary import format_ms, format_ratio, summarize
@@ -313,14 +314,14 @@ def perf_section(results_dir: str | Path, figure_link: str | None = None) -> str
     return "\n".join(lines)
 
 
-GPU_FIELDS = ("backend", "device", "device_kind", "precision", "samples", "admm_ms_median",
-              "admm_ms_p95", "load_avg")
-"""The fields of one GPU row that :func:`gpu_lines` reads."""
-_GPU_NUMBERS = frozenset({"samples", "admm_ms_median", "admm_ms_p95", "load_avg"})
+def _number(value: Any) -> bool:
+    """Whether ``value`` is a JSON number (not a boolean)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def gpu_rows(path: Path) -> list[dict[str, Any]]:
-    """The rows of one GPU run file (one JSON object per line, :data:`GPU_FIELDS` each).
+    """The rows of one GPU run file (one JSON object per line, each with
+    :data:`bench.gpu_perf.GPU_FIELDS`, numbers where :data:`bench.gpu_perf.GPU_NUMBERS`).
 
     Raises
     ------
@@ -342,9 +343,11 @@ def gpu_rows(path: Path) -> list[dict[str, Any]]:
         except ValueError as error:
             raise SchemaVersionError(f"{path}: line {number} damaged, not a c3bench GPU row "
                                      f"({error}); delete it or measure again") from error
-        missing = [name for name in GPU_FIELDS if not isinstance(row, dict) or name not in row
-                   or (name in _GPU_NUMBERS and (isinstance(row[name], bool) or
-                                                 not isinstance(row[name], int | float)))]
+        if not isinstance(row, dict):
+            missing = list(GPU_FIELDS)
+        else:
+            missing = [name for name in GPU_FIELDS if name not in row
+                       or (name in GPU_NUMBERS and not _number(row[name]))]
         if missing:
             raise SchemaVersionError(f"{path}: line {number} is not a c3bench GPU row "
                                      f"(missing or not a number: {', '.join(missing)}); "

@@ -21,7 +21,6 @@ import numpy as np
 import pandas as pd
 
 from c3bench.bench import store
-from c3bench.bench.accuracy import unverified_cells
 from c3bench.bench.budgets import budget_seconds
 from c3bench.bench.metrics import (
     DUAL_FAMILIES,
@@ -31,13 +30,14 @@ from c3bench.bench.metrics import (
     family_label,
     ranked_time_label,
     required_residuals,
+    unverified_cells,
 )
 from c3bench.bench.perf import (
     PERF_FIGURE,
 )
 from c3bench.bench.plots import all_figures, ordered_settings
 from c3bench.bench.reference import AGREE_COST, REFERENCE_PLANS, load_references, summarise
-from c3bench.bench.report_accuracy import budget_section, claimed_wrong_section
+from c3bench.bench.report_accuracy import budget_section, claimed_wrong_section, unverified_note
 from c3bench.bench.report_sequence import other_rows, sequence_section
 from c3bench.bench.report_why import why_slow_section
 from c3bench.bench.tables import NOT_RUN, fmt, fmt_accuracy, markdown_table
@@ -136,17 +136,19 @@ def _timing(frame: pd.DataFrame) -> str:
 
 def _executor(info: dict[str, Any], frame: pd.DataFrame) -> str:
     """The last run's executor (``run_info.json``), attributed to the stored rows only when
-    every one of them finished during that run."""
+    every one of them finished during that run (just the executor when none is stored)."""
     if not info:
         return "-"
     what = (f"Dask scheduler {info['scheduler']}" if info.get("scheduler")
             else f"local process pool, {info.get('jobs', '-')} workers")
+    if frame.empty:  # no stored cell to attribute
+        return what
     started = pd.to_datetime(str(info.get("date", "")), utc=True, errors="coerce")
     if pd.isna(started):
         return f"{what} (the last run's; its start time is unknown)"
     finished = pd.to_datetime(frame["finished_at"], utc=True, errors="coerce", format="ISO8601")
     ours = int((finished >= started).sum())
-    if len(frame) and ours == len(frame):
+    if ours == len(frame):
         return what
     return f"{what} (the last run's: {ours} of the {len(frame)} stored cells finished in it)"
 
@@ -313,7 +315,7 @@ def _failures(frame: pd.DataFrame) -> str:
     verified) are not failures and are counted apart below the table."""
     unverified = unverified_cells(frame)
     failed = frame[~frame["success"].to_numpy(dtype=bool) & ~unverified]
-    apart = _unverified_note(frame[unverified])
+    apart = unverified_note(frame[unverified], "failures")
     if failed.empty:
         return f"No cell failed. {apart}" if apart else "Every cell succeeded.\n"
     rows = []
@@ -332,18 +334,6 @@ def _failures(frame: pd.DataFrame) -> str:
               "claimed a solution but the residual check failed; *not found*: it returned "
               "without claiming one. The per-cell reason is the `verdict` column of the "
               "results.\n" + (f"\n{apart}" if apart else ""))
-
-
-def _unverified_note(unverified: pd.DataFrame) -> str:
-    """The sentence counting the unverified cells apart ('' when there are none)."""
-    if unverified.empty:
-        return ""
-    groups = unverified.groupby(["family", "solver"], sort=True).size()
-    where = ", ".join(f"{family} / {solver} ({count})"
-                      for (family, solver), count in groups.items())
-    return (f"Not counted as failures: {len(unverified)} *unverified* cells (feasible, "
-            "optimality not verified: they passed every residual check, but no verified "
-            f"reference optimum exists; not successes either): {fmt(where, 'text')}.\n")
 
 
 def _family_tables(frame: pd.DataFrame, summary: pd.DataFrame) -> list[str]:

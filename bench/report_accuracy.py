@@ -10,9 +10,9 @@ import math
 
 import pandas as pd
 
-from c3bench.bench.accuracy import claimed_but_wrong, unverified_cells
+from c3bench.bench.accuracy import claimed_but_wrong
 from c3bench.bench.budgets import BUDGET_FAMILIES, DEFAULT_BUDGET_S, BudgetCount, budget_table
-from c3bench.bench.metrics import family_label, ranked_time_label
+from c3bench.bench.metrics import family_label, ranked_time_label, unverified_cells
 from c3bench.bench.tables import NOT_RUN, fmt, fraction, markdown_table
 from c3bench.problems.config import MPCConfig
 from c3bench.problems.names import REFERENCE_ADMM_ITERATIONS
@@ -21,16 +21,13 @@ from c3bench.problems.names import REFERENCE_ADMM_ITERATIONS
 def claimed_wrong_section(frame: pd.DataFrame) -> str:
     """The "claimed success but wrong" table: per family and solver, the cells whose solver
     returned ``found=True`` and whose verdict failed, with the worst example; found=True cells
-    that are *unverified* (:func:`bench.accuracy.unverified_cells`) are neither successes nor
-    wrong and are counted apart."""
+    that are *unverified* (:func:`bench.metrics.unverified_cells`; found=True by
+    :func:`bench.metrics.judge`) are neither successes nor wrong and are counted apart."""
     groups = claimed_but_wrong(frame)
-    unverified = int((frame["found"].to_numpy(dtype=bool) & unverified_cells(frame)).sum())
-    apart = (f"{unverified} found=True cells passed every residual check without a verified "
-             "reference optimum: *unverified*, counted apart (neither successes nor wrong).\n"
-             if unverified else "")
+    apart = unverified_note(frame[unverified_cells(frame)], "wrong")
     if not groups:
         return ("No solver claimed a solution that the residual check rejected (every "
-                + ("found=True cell succeeded or is unverified). " + apart if unverified
+                + ("found=True cell succeeded or is unverified). " + apart if apart
                    else "found=True cell succeeded).\n"))
     rows = [[family_label(g.family, g.variant), g.solver, str(g.cells), str(g.claimed),
              fraction(g.wrong, g.claimed),
@@ -45,7 +42,23 @@ def claimed_wrong_section(frame: pd.DataFrame) -> str:
               "example is the wrong cell whose figure is furthest above its threshold "
               "(value / threshold largest; an unavailable figure first): the tolerance, or "
               "max(tolerance, reference spread) for the cost error.\n"
-            + (f"\n{apart}" if unverified else ""))
+            + (f"\n{apart}" if apart else ""))
+
+
+def unverified_note(unverified: pd.DataFrame, counted: str) -> str:
+    """The sentence counting the *unverified* cells (the rows of ``unverified``) apart, as
+    neither successes nor ``counted`` ("failures", "wrong"), per family and solver ('' when
+    there are none)."""
+    if unverified.empty:
+        return ""
+    count = len(unverified)
+    groups = unverified.groupby(["family", "solver"], sort=True).size()
+    where = ", ".join(f"{family} / {solver} ({cells})"
+                      for (family, solver), cells in groups.items())
+    return (f"{count} found=True cells passed every residual check without a verified "
+            f"reference optimum: these {count} *unverified* cells (feasible, optimality not "
+            f"verified) are neither successes nor {counted}, and are counted apart: "
+            f"{fmt(where, 'text')}.\n")
 
 
 def _budget_origin(budget_s: float, explicit: bool) -> str:

@@ -279,6 +279,16 @@ def identify_instances(paths: store.SuitePaths, instances: InstanceSet) -> dict[
     return {name: identity.id for name, identity in current.items()}
 
 
+ADOPTING = "cells.adopting"
+"""Folder (beside ``cells/``) where :func:`_adopt_table` writes the adopted cells before
+renaming it onto ``cells/``."""
+
+
+def _has_cells(paths: store.SuitePaths) -> bool:
+    """Whether ``cells/`` holds a cell file."""
+    return paths.cells.is_dir() and any(paths.cells.glob("*.json"))
+
+
 def _adopt_table(paths: store.SuitePaths, planned: set[tuple[str, ...]]) -> int:
     """Keep the rows of a results table that has no cell files (``cells/`` is never
     committed, so a fresh checkout of committed results has only ``results.parquet``): the
@@ -287,22 +297,35 @@ def _adopt_table(paths: store.SuitePaths, planned: set[tuple[str, ...]]) -> int:
     machine). Without this, running one solver on a fresh checkout replaced the committed
     table of 29 solvers by that solver's rows. Returns the rows adopted.
 
+    All or nothing: the cell files are written into ``cells.adopting/`` (:data:`ADOPTING`)
+    and that folder renamed onto ``cells/``, so an interrupt (Ctrl-C, a full disk) leaves no
+    partial ``cells/`` whose consolidation would drop the rows not yet written; the next
+    run adopts the whole table again.
+
     Raises :class:`InputError` when the table cannot be read (another schema version, damaged):
     it is never replaced silently.
     """
-    if not paths.parquet.exists() or (paths.cells.is_dir() and
-                                      any(paths.cells.glob("*.json"))):
+    if not paths.parquet.exists() or _has_cells(paths):
         return 0
     try:
         table = store.read_results(paths.parquet)
-    except (InputError, OSError, ValueError) as error:
-        raise InputError(f"{paths.parquet}: {error}; it has no cell files to rebuild it "
-                         f"from, so this run would replace it: move it away first") from error
+    except ValueError as error:  # SchemaVersionError (every read failure), all naming the file
+        raise InputError(f"{error}; it has no cell files to rebuild it from, so this run "
+                         f"would replace it: move it away first") from error
+    staging = paths.root / ADOPTING
+    shutil.rmtree(staging, ignore_errors=True)  # left by a run killed while adopting
     adopted = 0
-    for row in table.to_dict("records"):
-        if store.cell_key(row) not in planned:
-            store.write_cell(paths, row)
-            adopted += 1
+    try:
+        for row in table.to_dict("records"):
+            if store.cell_key(row) not in planned:
+                store.write_cell(paths, row, cells=staging)
+                adopted += 1
+        if adopted:
+            if paths.cells.is_dir():  # holds no cell file (else nothing is adopted)
+                shutil.rmtree(paths.cells)
+            os.replace(staging, paths.cells)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return adopted
 
 
@@ -485,6 +508,8 @@ def run_suite(
         pool: Executor = DaskPool(scheduler) if scheduler else LocalPool(jobs,
                                                                          paths.solver_log)
         tally = _Tally()
+        table_adopted = False  # until then, only cell files are consolidated (a table
+        # refused or half adopted is never replaced by an empty or partial cells/)
         try:
             registry.import_plugins(preload)
             problems, hashes = _load(suite, paths, families, capture, progress, skip_bad,
@@ -496,9 +521,10 @@ def run_suite(
             options = RunOptions(repeats=repeats, time_limit=time_limit,
                                  reference_time_limit=reference_time_limit,
                                  preload=tuple(preload), suite=name)
+            adopted = _adopt_table(paths, {cell.key for cell in plan.cells})
+            table_adopted = True
             _write_run_info(paths, plan, name, jobs, scheduler, options, settings, precisions,
                             starts, sequence_scope)
-            adopted = _adopt_table(paths, {cell.key for cell in plan.cells})
             done, stale = _sweep_stored(paths, hashes, rerun)
             todo = [cell for cell in plan.cells if cell.key not in done]
             already = len(plan.cells) - len(todo)
@@ -520,7 +546,7 @@ def run_suite(
             raise
         finally:
             pool.close()
-            if paths.cells.is_dir():
+            if (table_adopted and paths.cells.is_dir()) or _has_cells(paths):
                 store.consolidate(paths)
     return RunSummary(name, paths.root, len(plan.cells), already, tally.ran, tally.failed,
                       False, plan.skipped_solvers, tally.warm_missing, tally.references,

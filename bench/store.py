@@ -233,15 +233,16 @@ def cell_key(row: Mapping[str, Any]) -> tuple[str, ...]:
 
 
 def write_cell(paths: SuitePaths, row: Mapping[str, Any],
-               trace: Mapping[str, Any] | None = None) -> Path:
-    """Store one finished cell (and its trace) atomically; return the cell file."""
+               trace: Mapping[str, Any] | None = None, *, cells: Path | None = None) -> Path:
+    """Store one finished cell (and its trace) atomically; return the cell file (in
+    ``cells``, by default ``paths.cells``)."""
     row = normalise_row(row)
     if trace:
         relative = f"traces/{row['cell_id']}.json"
         write_json(paths.root / relative, {"schema_version": SCHEMA_VERSION,
                                            "cell_id": row["cell_id"], **trace})
         row["trace_file"] = relative
-    path = paths.cells / f"{row['cell_id']}.json"
+    path = (paths.cells if cells is None else cells) / f"{row['cell_id']}.json"
     write_json(path, row)
     return path
 
@@ -300,8 +301,9 @@ def read_parquet(path: Path, readable: tuple[int, ...] = (SCHEMA_VERSION,)) -> p
         for version in set(table.column("schema_version").to_pylist()) or {SCHEMA_VERSION}:
             check_version(version, path, readable)
         return table
-    check_version(int(raw) if raw is not None and raw.decode().isdigit() else raw, path,
-                  readable)
+    # bytes.isdigit: ASCII digits only, so damaged metadata is a version error, never a
+    # decode error without the file's name
+    check_version(int(raw) if raw is not None and raw.isdigit() else raw, path, readable)
     return table
 
 

@@ -34,7 +34,7 @@ from c3bench.bench.reference import ReferencePlan, load_references
 from c3bench.bench.report import write_report
 from c3bench.bench.rows import CellOutcome, run_cell
 from c3bench.problems.capture import SuiteSpec
-from c3bench.problems.errors import SchemaVersionError
+from c3bench.problems.errors import InputError, SchemaVersionError
 from c3bench.problems.instance import Problem
 from c3bench.problems.names import QPVariant
 from c3bench.problems.suites import generate_suite
@@ -373,6 +373,58 @@ def test_cells_of_a_changed_instance_are_rerun(tmp_path: Path, instances: Path) 
     assert (summary.stale_removed, summary.already_done, summary.ran) == (1, 2, 1)
     frame = store.read_results(tmp_path / "tiny")
     assert len(frame) == 3 and frame["instance_hash"].nunique() == 3
+
+
+ADOPT = dict(families=("c3_qp",), starts=("cold",), precisions=("float64",), repeats=1,
+             time_limit=5.0, progress=False)
+
+
+def test_an_interrupted_adoption_keeps_every_row_of_the_table(
+        tmp_path: Path, instances: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fresh checkout (table, no cells/) whose adoption of the table's rows is interrupted
+    after two cell files: the table is untouched and the next run adopts every row."""
+    _seed(tmp_path, instances)
+    paths = store.SuitePaths.of(tmp_path, "tiny")
+    runner.run_suite("tiny", tmp_path, solvers=["fake_kkt", "fake_wrong"], **ADOPT)
+    table = store.read_results(paths.parquet)
+    assert len(table) == 6
+    shutil.rmtree(paths.cells)
+    paths.cells.mkdir()  # an empty cells/ is no cell files either
+    stored = paths.parquet.read_bytes()
+    written = []
+    real_write_cell = store.write_cell
+
+    def interrupted(*args: Any, **kwargs: Any) -> Path:
+        if len(written) == 2:
+            raise KeyboardInterrupt
+        written.append(real_write_cell(*args, **kwargs))
+        return written[-1]
+
+    monkeypatch.setattr(store, "write_cell", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_suite("tiny", tmp_path, solvers=["fake_wrong"], **ADOPT)
+    assert paths.parquet.read_bytes() == stored
+    assert not (paths.root / runner.ADOPTING).exists()
+    monkeypatch.undo()
+    summary = runner.run_suite("tiny", tmp_path, solvers=["fake_wrong"], **ADOPT)
+    assert (summary.adopted, summary.ran) == (3, 3)
+    after = store.read_results(paths.parquet)
+    kept = ["cell_id", "objective", "solve_time"]
+    pd.testing.assert_frame_equal(after[kept], table[kept])
+
+
+def test_an_unreadable_table_with_an_empty_cells_folder_is_kept_and_nothing_written(
+        tmp_path: Path, instances: Path) -> None:
+    _seed(tmp_path, instances)
+    paths = store.SuitePaths.of(tmp_path, "tiny")
+    paths.cells.mkdir(parents=True)
+    paths.parquet.write_bytes(b"not parquet")
+    with pytest.raises(InputError, match="move it away") as caught:
+        runner.run_suite("tiny", tmp_path, solvers=["fake_wrong"], **ADOPT)
+    assert paths.parquet.read_bytes() == b"not parquet"
+    assert not paths.csv.exists() and not paths.run_info.exists()
+    message = str(caught.value)  # one line, the file named first and once there
+    assert message.startswith(f"{paths.parquet}: not a readable") and "\n" not in message
 
 
 # --- crashes, hangs, NaN, dead workers ------------------------------------------------------------

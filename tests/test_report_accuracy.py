@@ -41,8 +41,6 @@ def _table(text: str, heading: str) -> dict[str, dict[str, str]]:
             for cells in ([c.strip() for c in line.strip("|").split("|")] for line in lines[2:])}
 
 
-
-
 # --- geometric means without a floor ------------------------------------------------------------
 PRIMAL = {"alpha": [1e-16, 1e-10, 3e-5, 0.0], "beta": [2e-4, 5e-2, 1e-8, 7e-7]}
 DUAL = {"alpha": [1e-14, 1e-14, 1e-13, 1e-15], "beta": [5e-3, 4e-2, 6e-2, 2e-3]}

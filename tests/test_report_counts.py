@@ -12,13 +12,12 @@ from conftest import synthetic_report
 from synthetic_results import frame as make_frame
 from synthetic_results import row
 
-from c3bench.bench.accuracy import claimed_but_wrong, unverified_cells
+from c3bench.bench.accuracy import claimed_but_wrong
+from c3bench.bench.metrics import unverified_cells
 
 
 def _section(text: str, heading: str) -> str:
     return text.split(f"## {heading}\n", 1)[1].split("\n## ", 1)[0]
-
-
 
 
 def _projection(count: int, **values: Any) -> list[dict[str, Any]]:
