@@ -189,8 +189,9 @@ def normalise_row(row: Mapping[str, Any]) -> dict[str, Any]:
     ------
     ValueError
         A column is missing, or holds a value of another type, on one line naming the column:
-        text such as ``'False'`` in a ``bool`` column (``None`` is False there; a stored
-        table's are checked by :func:`read_results`), NaN or a fraction in an ``int64`` one.
+        text such as ``'False'`` in a ``bool`` column (``None``, NA and NaN are False there;
+        a stored table's are checked by :func:`read_results`), NaN or a fraction in an
+        ``int64`` one.
     """
     out: dict[str, Any] = {}
     for column in SCHEMA:
@@ -213,7 +214,11 @@ def _coerce(value: Any, dtype: str) -> Any:
     if dtype == "bool":
         if isinstance(value, str | bytes):
             raise TypeError("text, not a boolean")
-        return value is not None and value is not pd.NA and bool(value)
+        # missing (None, NA, a float NaN) is False: never a verdict nobody gave
+        if value is None or value is pd.NA or (
+                isinstance(value, float | np.floating) and math.isnan(value)):
+            return False
+        return bool(value)
     if dtype == "Int64" and (value is None or value is pd.NA or (
             isinstance(value, float) and math.isnan(value))):
         return None

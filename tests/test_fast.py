@@ -232,6 +232,8 @@ def test_invalid_inputs_raise(push: SimpleNamespace) -> None:
     for bad in ([-1.0], [np.nan], [0.0]):
         with pytest.raises(InputError, match="weights must be finite, >= 0"):
             fast.solve(batch, case.x0, weights=bad)
+    with pytest.raises(InputError, match="weights must be numbers"):  # not numpy's message
+        fast.solve(batch, case.x0, weights=["heavy"])
     with pytest.raises(InputError, match="non-finite"):
         ns = batch.nx + 2 * batch.nlam + batch.nu
         fast.solve(batch, case.x0, delta=np.full((push.mpc.horizon, ns), np.nan))

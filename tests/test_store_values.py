@@ -123,6 +123,9 @@ def test_normalise_row_names_the_column() -> None:
         store.normalise_row({**good, "iterations": "many"})
     assert store.normalise_row({**good, "iterations": math.nan})["iterations"] is None
     assert store.normalise_row({**good, "found": np.bool_(False)})["found"] is False
+    # a missing verdict is never a given one: NaN (pandas' missing float) reads as False
+    for missing in (math.nan, np.float32("nan"), None):
+        assert store.normalise_row({**good, "verified": missing})["verified"] is False
 
 
 def test_well_formed_tables_read_as_before(tmp_path: Path) -> None:

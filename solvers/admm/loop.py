@@ -81,7 +81,10 @@ def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -
     """
     if weights is None:
         return np.full(samples, 1.0 / samples)
-    array = np.asarray(weights, dtype=float)
+    try:
+        array = np.asarray(weights, dtype=float)
+    except (TypeError, ValueError) as error:  # text, ragged lists, objects
+        raise InputError(f"weights must be numbers: {error}") from None
     if array.shape != (samples,):
         raise InputError(f"weights must have shape ({samples},), got {array.shape}")
     # the ufuncs' reductions directly (what ndarray.sum/min/max call, without their Python
