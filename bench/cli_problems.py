@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from c3bench.bench import cli_checks
-from c3bench.bench.cli_options import EXIT_ERROR, EXIT_OK, add_quiet
+from c3bench.bench.cli_options import EXIT_ERROR, EXIT_OK, add_quiet, path_text
 from c3bench.problems.capture import SUITES, Capture
 from c3bench.problems.errors import InputError, InstanceFormatError
 from c3bench.problems.instance import Problem
@@ -49,13 +49,16 @@ def capture_for(name: str) -> Capture | None:
     return controller_capture(C3Options(variant=Variant.C3PLUS, qp_backend=CAPTURE_QP_BACKEND))
 
 
-def read_instance_dir(directory: Path, skip_bad: bool) -> list[Problem]:
+def read_instance_dir(directory: Path, skip_bad: bool, *,
+                      check_manifest: bool = True) -> list[Problem]:
     """The instances below ``directory``; bad files stop it (:class:`InstanceFormatError`
-    naming the file) or, with ``skip_bad``, are listed on stderr and left out."""
+    naming the file) or, with ``skip_bad``, are listed on stderr and left out. A damaged
+    ``manifest.json`` stops it (:class:`InputError` naming it) unless ``check_manifest`` is
+    false (:func:`c3bench.problems.instance.read_instances`)."""
     from c3bench.problems.instance import read_instances
 
     try:
-        found = read_instances(directory, skip_bad=skip_bad)
+        found = read_instances(directory, skip_bad=skip_bad, check_manifest=check_manifest)
     except InstanceFormatError as error:
         raise InstanceFormatError(f"{error} (--skip-bad lists and skips bad files)") from error
     for line in found.skipped:
@@ -130,8 +133,7 @@ def cmd_problems_list(args: argparse.Namespace) -> int:
         raise InputError(f"DIR: {directory} is not a directory")
     table = instance_table(directory, args.skip_bad)
     if table.empty:
-        print(f"no instances under {directory}")
-        return EXIT_ERROR
+        raise InputError(f"DIR: no instances under {directory}")
     print(table.to_string(index=False))
     return EXIT_OK
 
@@ -140,7 +142,7 @@ def cmd_problems_import(args: argparse.Namespace) -> int:
     """Import the user's problems into ``--out`` as ``qp`` (``lcp_general`` for an LCP file)
     instances and print their table."""
     from c3bench.problems.importers import read_module, read_npz_source, write_imported
-    from c3bench.problems.suite_files import check_target, staging_dir, swap_in
+    from c3bench.problems.suite_files import check_apart, check_target, staging_dir, swap_in
 
     if (args.source is None) == (args.module is None):
         raise InputError("give either SRC (an .npz file or a directory of them) or "
@@ -148,6 +150,8 @@ def cmd_problems_import(args: argparse.Namespace) -> int:
     cli_checks.check_output_path("--out", args.out)
     out = Path(args.out)
     try:
+        if args.source is not None:
+            check_apart(out, Path(args.source), "SRC")
         check_target(out)
     except InputError as error:
         raise InputError(f"--out: {error}") from error
@@ -179,16 +183,22 @@ def cmd_problems_import(args: argparse.Namespace) -> int:
 
 def cmd_problems_export(args: argparse.Namespace) -> int:
     """Write the instances of ``DIR`` in another tool's format (qpsolvers)."""
-    from c3bench.problems.exporters import export_qpsolvers
+    from c3bench.problems.exporters import check_export_target, export_qpsolvers
+    from c3bench.problems.suite_files import check_apart
 
-    directory = Path(args.directory)
+    directory, out = Path(args.directory), Path(args.out)
     if not directory.is_dir():
         raise InputError(f"DIR: {directory} is not a directory")
     cli_checks.check_output_path("--out", args.out)
+    try:  # the instances read are never written over
+        check_apart(out, directory, "DIR")
+        check_export_target(out)
+    except InputError as error:
+        raise InputError(f"--out: {error}") from error
     problems = read_instance_dir(directory, args.skip_bad)
     if not problems:
         raise InputError(f"DIR: no instances under {directory}")
-    export = export_qpsolvers(problems, Path(args.out))
+    export = export_qpsolvers(problems, out)
     for name, reason in sorted(export.skipped.items()):
         print(f"left out {name}: {reason}", file=sys.stderr)
     print(f"exported {len(export.written)} instances to {args.out} (qpsolvers.Problem.load "
@@ -210,16 +220,17 @@ def _add_import_export(problems_sub: Any) -> None:
                     "callable without arguments) yield qpsolvers.Problem objects, and "
                     "write them as instances of the qp family (lcp_general for an LCP; with "
                     "a manifest) that `c3bench run --instances DIR` runs.")
-    imports.add_argument("source", nargs="?", default=None, metavar="SRC",
+    imports.add_argument("source", nargs="?", default=None, metavar="SRC", type=path_text,
                          help="an .npz file or a directory of them (searched recursively)")
     imports.add_argument("--module", default=None, metavar="MODULE",
                          help="instead of SRC: an importable Python module defining test "
                               "sets: generator functions or classes with __iter__, callable "
                               "without arguments, yielding qpsolvers.Problem objects (nothing "
                               "else in the module is called)")
-    imports.add_argument("--out", required=True, metavar="DIR",
+    imports.add_argument("--out", required=True, metavar="DIR", type=path_text,
                          help="instance directory to write (new, empty, or one written by "
-                              "import or generate, which is replaced as a whole)")
+                              "import or generate, which is replaced as a whole; not SRC or "
+                              "inside it)")
     imports.set_defaults(handler=cmd_problems_import)
     export = problems_sub.add_parser(
         "export", help="write instances for other tools (qpsolvers.Problem.load)",
@@ -228,8 +239,11 @@ def _add_import_export(problems_sub: Any) -> None:
                     "objective offset, and OUT/c3bench_test_set.py, the qpbenchmark test set "
                     "over them (qpbenchmark --results-path R.csv OUT/c3bench_test_set.py run "
                     "--author NAME).")
-    export.add_argument("directory", metavar="DIR", help="directory holding instances")
-    export.add_argument("--out", required=True, metavar="OUT", help="directory to write")
+    export.add_argument("directory", metavar="DIR", type=path_text,
+                        help="directory holding instances")
+    export.add_argument("--out", required=True, metavar="OUT", type=path_text,
+                        help="directory to write (new, empty, or one an earlier export wrote, "
+                             "which is updated; not DIR or inside it)")
     export.add_argument("--format", choices=FORMATS, default=FORMATS[0],
                         help=f"output format (default: {FORMATS[0]})")
     add_skip_bad(export)
@@ -248,10 +262,10 @@ def add_problems(sub: Any) -> None:
                                        description="Write a suite's instances to a directory.")
     generate.add_argument("--suite", choices=tuple(SUITES), default="quick",
                           help="suite (default: quick)")
-    generate.add_argument("--out", required=True, metavar="DIR",
+    generate.add_argument("--out", required=True, metavar="DIR", type=path_text,
                           help="instance directory to write (not a results root); one "
                                "holding a suite is replaced as a whole")
-    generate.add_argument("--config", default=None, metavar="FILE",
+    generate.add_argument("--config", default=None, metavar="FILE", type=path_text,
                           help="task constants (TOML; default: the packaged cube_tipping.toml)")
     generate.add_argument("--capture", choices=("controller", "provisional"),
                           default="controller",
@@ -263,7 +277,8 @@ def add_problems(sub: Any) -> None:
         "list", help="table of instances by family and variant",
         description="Per family and variant: count, variables, equality and inequality rows, "
                     "bounded variables, pairs, and " + INEQUALITIES_HELP + ".")
-    listing.add_argument("directory", metavar="DIR", help="directory holding instances")
+    listing.add_argument("directory", metavar="DIR", type=path_text,
+                         help="directory holding instances")
     add_skip_bad(listing)
     listing.set_defaults(handler=cmd_problems_list)
     _add_import_export(problems_sub)

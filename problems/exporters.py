@@ -12,6 +12,10 @@ our instances' objective minus its constant ``objective_offset``.
 so that ``f = 1/2 x^T P x + q^T x + objective_offset`` is our objective) and the instances
 left out with the reason (complementarity pairs have no place in qpsolvers' form).
 
+``OUT`` must be new, empty, or the folder of an earlier export (recognised by its
+``index.json``; :func:`check_export_target`), which is updated (the ``.npz`` files its index
+listed that this export does not write are removed; other files are left alone).
+
 ``OUT/c3bench_test_set.py`` (:data:`SHIM_NAME`) defines the qpbenchmark test set class
 ``C3BenchTestSet`` over ``OUT`` (:mod:`c3bench.bench.qpbenchmark_set`), so that
 ``qpbenchmark --results-path OUT/results.csv OUT/c3bench_test_set.py run`` benchmarks the
@@ -28,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from c3bench.problems.errors import InputError
 from c3bench.problems.instance import Problem, atomic_write_bytes
 from c3bench.problems.names import QP_FAMILIES
 
@@ -99,9 +104,49 @@ def exportable(problem: Problem) -> str:
     return ""
 
 
+def previous_files(out: Path) -> set[str] | None:
+    """The ``.npz`` file names that the ``index.json`` of an earlier export into ``out``
+    lists, ``None`` when ``out`` holds no export's index (none, unreadable, or not one)."""
+    try:
+        table = json.loads((out / INDEX).read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    if not (isinstance(table, dict) and table.get("format") in FORMATS
+            and isinstance(table.get("instances"), list)):
+        return None
+    files = (entry.get("file") for entry in table["instances"] if isinstance(entry, dict))
+    return {name for name in files if isinstance(name, str) and name.endswith(".npz")
+            and Path(name).name == name and not name.startswith(".")}
+
+
+def check_export_target(out: Path) -> None:
+    """Refuse an output directory that an export must not write into: ``out`` may be absent,
+    empty (hidden ``.tmp`` leftovers aside) or hold an earlier export (its ``index.json``,
+    :func:`previous_files`), which is updated; anything else raises :class:`InputError`
+    naming ``out`` (an export never overwrites files it did not write)."""
+    if not out.is_dir():
+        return
+    found = sorted(child.name for child in out.iterdir()
+                   if not (child.name.startswith(".") and child.name.endswith(".tmp")))
+    if found and previous_files(out) is None:
+        shown = ", ".join(found[:3]) + (", ..." if len(found) > 3 else "")
+        raise InputError(f"{out}: holds files that no export wrote ({shown}; no export's "
+                         f"{INDEX}); export into a new or empty directory, or one an earlier "
+                         "export wrote")
+
+
 def export_qpsolvers(problems: list[Problem], out: Path) -> Export:
-    """Write ``problems`` (those :func:`exportable`) into ``out`` (see the module docstring)."""
+    """Write ``problems`` (those :func:`exportable`) into ``out`` (see the module docstring).
+
+    ``out`` must pass :func:`check_export_target`. An export's index is written first (so an
+    interrupted export can be redone into the same folder) and last; the ``.npz`` files an
+    earlier export there listed that this one does not write are removed.
+    """
+    check_export_target(out)
+    earlier = previous_files(out)
     result = Export(index=out / INDEX, test_set=out / SHIM_NAME)
+    if earlier is None:  # mark the folder as an export's before writing into it
+        _write_index(result.index, [], {})
     entries: list[dict[str, Any]] = []
     for problem in problems:
         reason = exportable(problem)
@@ -113,8 +158,14 @@ def export_qpsolvers(problems: list[Problem], out: Path) -> Export:
         result.written.append(path)
         entries.append({"name": problem.name, "family": str(problem.family),
                         "file": path.name, "objective_offset": problem.objective_offset})
-    index = {"format": "qpsolvers", "instances": entries, "skipped": result.skipped}
-    atomic_write_bytes(result.index,
-                       (json.dumps(index, indent=2, sort_keys=True) + "\n").encode())
+    _write_index(result.index, entries, result.skipped)
     atomic_write_bytes(result.test_set, SHIM_SOURCE.encode())
+    for name in sorted((earlier or set()) - {path.name for path in result.written}):
+        (out / name).unlink(missing_ok=True)
     return result
+
+
+def _write_index(path: Path, entries: list[dict[str, Any]], skipped: dict[str, str]) -> None:
+    """``index.json``: the exported instances' entries and the instances left out."""
+    index = {"format": "qpsolvers", "instances": entries, "skipped": skipped}
+    atomic_write_bytes(path, (json.dumps(index, indent=2, sort_keys=True) + "\n").encode())

@@ -353,7 +353,7 @@ def read_module(name: str) -> list[Problem]:
     """
     try:
         module = importlib.import_module(name)
-    except Exception as error:  # a user module may raise anything on import
+    except (Exception, SystemExit) as error:  # a user module may raise or exit
         raise InputError(f"--module {name}: cannot import it ({_one_line(error)})") from error
     sets = find_test_sets(module)
     if not sets:
@@ -366,7 +366,7 @@ def read_module(name: str) -> list[Problem]:
         where = f"--module {name}: {label}"
         try:
             iterator = iter(test_set())
-        except Exception as error:  # user code
+        except (Exception, SystemExit) as error:  # user code (sys.exit too)
             raise InputError(f"{where}: raised {_one_line(error)}") from error
         index = 0
         while True:
@@ -374,14 +374,14 @@ def read_module(name: str) -> list[Problem]:
                 item = next(iterator)
             except StopIteration:
                 break
-            except Exception as error:  # user code
+            except (Exception, SystemExit) as error:  # user code (sys.exit too)
                 raise InputError(f"{where}: raised {_one_line(error)} while yielding item "
                                  f"{index}") from error
             try:
                 item_name, arrays = _item_arrays(label, item, index)
             except ValueError as error:
                 raise InputError(f"{where} item {index} {error}") from error
-            except Exception as error:  # a user property
+            except (Exception, SystemExit) as error:  # a user property
                 raise InputError(f"{where} item {index}: reading it raised "
                                  f"{_one_line(error)}") from error
             source = f"{where} item {index} ({item_name})"

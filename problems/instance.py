@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from c3bench.problems.errors import InstanceFormatError
+from c3bench.problems.errors import InputError, InstanceFormatError
 from c3bench.problems.instance_contract import (  # re-exported: the contract
     FAMILIES,
     QP_FIELDS,
@@ -37,7 +37,8 @@ from c3bench.problems.instance_contract import (  # re-exported: the contract
 __all__ = [
     "FAMILIES", "MANIFEST", "QP_FIELDS", "REQUIRED_META", "SCHEMA_VERSION", "InstanceSet",
     "Problem", "atomic_write_bytes", "lcp_data", "list_instances", "load_instances",
-    "load_problem", "problem_arrays", "read_instances", "required_meta", "save_problem",
+    "load_problem", "problem_arrays", "read_instances", "read_manifest", "required_meta",
+    "save_problem",
 ]
 from c3bench.problems.lcs import LCS, LCS_MATRICES
 from c3bench.problems.names import GENERIC_FAMILIES
@@ -208,6 +209,7 @@ def load_problem(path: str | Path) -> Problem:
         if key not in meta:
             raise InstanceFormatError(f"{json_path}: missing key 'meta.{key}'")
     arrays = _read_arrays(npz_path)
+    _check_real(arrays, npz_path)
     for key in [*keys, "P", "q"]:
         if key not in arrays:
             raise InstanceFormatError(f"{npz_path}: missing key {key!r}")
@@ -217,6 +219,24 @@ def load_problem(path: str | Path) -> Problem:
         if isinstance(error, InstanceFormatError):
             raise
         raise InstanceFormatError(f"{json_path}: {error}") from error
+
+
+_REAL_KINDS = "biuf"
+"""NumPy dtype kinds of real numbers (bool, signed and unsigned integers, floats)."""
+
+
+def _check_real(arrays: dict[str, np.ndarray], npz_path: Path) -> None:
+    """Every stored array holds real numbers: :class:`InstanceFormatError` naming the file
+    and the key for complex (never cut to its real part), string or other data."""
+    for key in sorted(arrays):
+        kind = arrays[key].dtype.kind
+        if kind == "c":
+            raise InstanceFormatError(f"{npz_path}: key {key!r} is complex "
+                                      f"({arrays[key].dtype}); instance data are real numbers "
+                                      "(nothing is cut to its real part)")
+        if kind not in _REAL_KINDS:
+            raise InstanceFormatError(f"{npz_path}: key {key!r} holds {arrays[key].dtype} "
+                                      "values, not real numbers")
 
 
 def required_meta(family: str, has_lcs: bool) -> tuple[str, ...]:
@@ -259,6 +279,53 @@ def _build_problem(header: dict[str, Any], arrays: dict[str, np.ndarray], json_p
 # --- directories of instances ----------------------------------------------------------------
 MANIFEST = "manifest.json"
 """The suite manifest beside the family folders (not an instance)."""
+MANIFEST_HELP = ("remove it: `c3bench run --instances DIR` writes a new one, `c3bench run` "
+                 "regenerates a packaged suite")
+"""What to do about a damaged manifest (:func:`read_manifest`)."""
+
+
+def read_manifest(directory: str | Path) -> dict[str, Any] | None:
+    """The manifest of an instance directory (``directory/manifest.json``), ``None`` when it
+    has none.
+
+    Raises
+    ------
+    InputError
+        Naming the file when it is unreadable, not JSON, or not a manifest's table: an object
+        whose ``suite`` is an object, with ``counts`` (if any) mapping names to counts,
+        ``instances`` (if any) a list of names and ``generator_version`` (if any) an integer.
+    """
+    path = Path(directory) / MANIFEST
+    if not os.path.lexists(path):
+        return None
+    try:
+        table = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        why = f"{type(error).__name__}: {error}"
+        raise InputError(f"{path}: unreadable or not JSON ({why}); {MANIFEST_HELP}") from error
+    why = _manifest_fault(table)
+    if why:
+        raise InputError(f"{path}: not an instance manifest ({why}); {MANIFEST_HELP}")
+    return dict(table)
+
+
+def _manifest_fault(table: Any) -> str:
+    """What makes ``table`` (a parsed ``manifest.json``) no manifest, ``""`` when nothing."""
+    if not isinstance(table, dict):
+        return f"a JSON {type(table).__name__}, expected an object"
+    if not isinstance(table.get("suite"), dict):
+        return "key 'suite' must be an object"
+    counts = table.get("counts", {})
+    if not (isinstance(counts, dict) and all(
+            isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in counts.values())):
+        return "key 'counts' must map names to counts"
+    names = table.get("instances", [])
+    if not (isinstance(names, list) and all(isinstance(name, str) for name in names)):
+        return "key 'instances' must be a list of names"
+    version = table.get("generator_version", 0)
+    if not isinstance(version, int) or isinstance(version, bool):
+        return "key 'generator_version' must be an integer"
+    return ""
 
 
 def list_instances(directory: str | Path) -> list[Path]:
@@ -301,13 +368,19 @@ class InstanceSet:
     skipped: list[str] = field(default_factory=list)
 
 
-def read_instances(directory: str | Path, skip_bad: bool = False) -> InstanceSet:
+def read_instances(directory: str | Path, skip_bad: bool = False, *,
+                   check_manifest: bool = True) -> InstanceSet:
     """Load every instance below ``directory``.
 
     A bad file (see :func:`load_problem`) or a second instance of the same name raises
     :class:`InstanceFormatError` naming the file and the problem; with ``skip_bad`` it is
-    left out and listed in :attr:`InstanceSet.skipped` instead.
+    left out and listed in :attr:`InstanceSet.skipped` instead. A damaged ``manifest.json``
+    (:func:`read_manifest`) raises :class:`InputError` naming it, with or without
+    ``skip_bad``, unless ``check_manifest`` is false (a packaged suite's stored copy, whose
+    damaged manifest a run regenerates).
     """
+    if check_manifest:
+        read_manifest(directory)  # a damaged manifest stops it, even with skip_bad
     out = InstanceSet()
     first: dict[str, Path] = {}
     for path in list_instances(directory):

@@ -120,9 +120,15 @@ class Problem:
     def validate(self) -> None:
         """Check shapes and values; raise ``ValueError`` naming the field at fault."""
         if self.family not in FAMILIES:
-            raise ValueError(f"family must be one of {FAMILIES}, got {self.family!r}")
+            raise ValueError(f"family must be one of {', '.join(map(str, FAMILIES))}, got "
+                             f"{self.family!r}")
         self.q = _as_float("q", self.q, ndim=1)
         n = self.q.shape[0]
+        self.P = _as_float("P", self.P, ndim=2)
+        rows, columns = self.P.shape
+        if rows == columns != n:  # a square P of another size: q is the one at fault
+            raise ValueError(f"{self.name}: q has length {n} but P is {rows} x {columns}: q "
+                             f"must have length {rows} (or P must have shape ({n}, {n}))")
         self.P = _as_float("P", self.P, shape=(n, n))
         if not np.all(np.isfinite(self.P)):
             raise ValueError(f"{self.name}: P has non-finite entries")
@@ -234,6 +240,9 @@ def _check_lcp_general(problem: Problem) -> None:
 
 def _as_float(name: str, value: Any, ndim: int | None = None,
               shape: tuple[int, ...] | None = None) -> np.ndarray:
+    if np.iscomplexobj(value):
+        raise ValueError(f"{name} must be real, got complex values (nothing is cut to its "
+                         "real part)")
     try:
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as error:

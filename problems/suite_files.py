@@ -3,6 +3,7 @@
 * identity: :data:`GENERATOR_VERSION` and :func:`out_of_date` (whether a stored suite's
   ``manifest.json`` was written by today's generator for the same suite definition);
 * replacement: :func:`check_target` (which directories a generation may replace),
+  :func:`check_apart` (an output that is, lies inside or holds its input is refused),
   :func:`staging_dir` (the hidden sibling folder a suite is written into) and :func:`swap_in`
   (the complete suite swapped in, so a directory never mixes two generations).
 
@@ -22,7 +23,8 @@ from c3bench.problems.capture import SuiteSpec
 from c3bench.problems.errors import InputError
 from c3bench.problems.instance import FAMILIES, MANIFEST
 
-__all__ = ["GENERATOR_VERSION", "check_target", "out_of_date", "staging_dir", "swap_in"]
+__all__ = ["GENERATOR_VERSION", "check_apart", "check_target", "out_of_date", "staging_dir",
+           "swap_in"]
 
 
 GENERATOR_VERSION = 2
@@ -67,6 +69,20 @@ def check_target(out: Path) -> None:
         shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
         raise InputError(f"{out}: holds files that are not a suite's instances ({shown}); "
                          "generate into a new or empty directory")
+
+
+def check_apart(out: Path, source: Path, label: str) -> None:
+    """Refuse an output directory ``out`` that is the input ``source`` (a file or directory,
+    called ``label`` in the message), lies inside it or holds it: writing there would change
+    what is read. Symbolic links are followed; ``out`` need not exist."""
+    target, origin = out.resolve(), source.resolve()
+    if target == origin:
+        raise InputError(f"{out}: is {label} ({source}); write to a directory outside it")
+    if origin in target.parents:
+        raise InputError(f"{out}: is inside {label} ({source}); write to a directory "
+                         "outside it")
+    if target in origin.parents:
+        raise InputError(f"{out}: holds {label} ({source}); write to a directory outside it")
 
 
 def staging_dir(out: Path) -> Path:
