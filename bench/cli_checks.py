@@ -2,7 +2,10 @@
 
 Each check raises :class:`~c3bench.problems.errors.InputError` naming the option and what it
 accepts (the CLI prints it on one line and exits with code 2) before a directory is created
-or a solve starts. :func:`describe_error` turns an expected fault (an ``OSError`` of a full
+or a solve starts; the closed-loop commands' model and period options are checked against
+the task configuration (:func:`check_model_side`, :func:`check_plant_period`) and the
+backend options against the controller that would use them (:func:`check_backend_options`).
+:func:`describe_error` turns an expected fault (an ``OSError`` of a full
 disk, a read-only or missing path, a path under a file) into one line naming the path.
 """
 
@@ -16,7 +19,7 @@ import re
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from c3bench.bench import store
 from c3bench.problems.capture import SUITES, SuiteSpec
@@ -25,7 +28,21 @@ from c3bench.problems.instance import FAMILIES, MANIFEST
 from c3bench.problems.names import SUITE_FAMILIES, Family
 
 if TYPE_CHECKING:
+    from c3bench.problems.config import Config
     from c3bench.solvers.registry import BackendInfo
+
+MAX_STACKED_SAMPLES = 32
+"""Most samples of the stacked ``c3plus-robust`` controller (default 16): its dense QP has
+about 165 variables per sample (16 samples: n = 2638, 97 MB pickled to the solver process),
+so its memory grows with the square of the samples. Measured on the 2-core VM, one control
+step with Clarabel: 32 samples 45 s and 1.6 GB resident, each QP solve within the default
+10 s limit; 64 samples 5.6 GB, and every QP solve overran that limit. ``c3plus-fast-robust``
+takes up to :data:`bench.cli_options.MAX_SAMPLES` (4096 samples: 5.8 s a step, 0.5 GB)."""
+MAX_MODEL_SIDE = 10.0
+"""Largest model cube side (m; the plant's is 0.30 and the ball's workspace 1.2 m wide)."""
+PERIOD_TOLERANCE = 1e-9
+"""Relative tolerance of a control period that is a whole number of plant steps (the plant's
+own: :meth:`c3bench.problems.scene.Plant.step`)."""
 
 SUITE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 """A suite name: a folder name under the results root (no separators, not hidden)."""
@@ -187,6 +204,67 @@ def check_cpu(core: int | None) -> None:
     if core not in allowed:
         raise InputError(f"--cpu: core {core} is not one this process may run on "
                          f"({', '.join(map(str, allowed))})")
+
+
+# --- closed loop --------------------------------------------------------------------------------
+def check_model_side(option: str, side: float, config: Config) -> None:
+    """A model cube side of at most :data:`MAX_MODEL_SIDE` that MuJoCo accepts: the
+    controller's scene is built once here, so that a side too small for MuJoCo is an
+    :class:`InputError` naming ``option``, not an error in every control step."""
+    from c3bench.problems.scene import build_scene
+
+    if side > MAX_MODEL_SIDE:
+        raise InputError(f"{option} {side:g}: a model cube side is at most "
+                         f"{MAX_MODEL_SIDE:g} m")
+
+    try:
+        build_scene(l=side, config=config)
+    except ValueError as error:  # MuJoCo's compiler errors are ValueErrors
+        reason = str(error).splitlines()[0].removeprefix("Error: ").strip()
+        raise InputError(f"{option} {side:g}: MuJoCo cannot build a model cube of side "
+                         f"{side:g} m ({reason})") from None
+
+
+def check_plant_period(option: str, dt: float, config: Config) -> None:
+    """A control period that is a whole number (>= 1) of the plant's time steps."""
+    step = config.scene.plant_timestep
+    count = round(dt / step)
+    if count < 1 or abs(count * step - dt) > PERIOD_TOLERANCE * max(1.0, dt):
+        raise InputError(f"{option} {dt:g}: not a whole multiple of the plant's time step "
+                         f"{step:g} s (the plant runs whole steps within a control period)")
+
+
+def check_samples(controller: str, samples: int) -> None:
+    """``--samples`` within what ``controller`` can hold (:data:`MAX_STACKED_SAMPLES` for the
+    stacked ``c3plus-robust``; the parser caps the others)."""
+    if controller == "c3plus-robust" and samples > MAX_STACKED_SAMPLES:
+        raise InputError(f"--samples: the stacked c3plus-robust controller takes at most "
+                         f"{MAX_STACKED_SAMPLES} samples (its dense QP grows with their "
+                         f"square), got {samples}; c3plus-fast-robust takes more")
+
+
+_UNUSED_REASON = {"--qp-backend": "the fast controllers solve their QP steps themselves",
+                  "--projection": "only c3 has an MIQP projection"}
+
+
+def check_backend_options(controller: str, options: dict[str, Any]) -> None:
+    """``--qp-backend`` / ``--projection`` (``options``: the given ones, ``None`` when left
+    out) are not given to a controller that does not use them; the message says whether the
+    value is also unknown."""
+    from c3bench.bench.closed_loop_policy import FAST_CONTROLLERS
+
+    unused = {"--qp-backend": controller in FAST_CONTROLLERS,
+              "--projection": controller != "c3"}
+    for option, value in options.items():
+        if value is None or not unused.get(option, False):
+            continue
+        from c3bench.solvers import registry
+
+        known = value in registry.backends()
+        what = f"{option} {value!r}" if known else \
+            f"{option}: unknown solver {value!r}, and {option}"
+        raise InputError(f"{what} does not apply to --controller {controller} "
+                         f"({_UNUSED_REASON[option]}); leave it out")
 
 
 # --- messages ------------------------------------------------------------------------------------

@@ -8,10 +8,13 @@ command writes under the results root ``--results ROOT`` (:func:`bench.store.clo
 ``ROOT/closed_loop/runs/<controller>/`` (one run), ``ROOT/closed_loop/trials/<controller>/``
 (randomized trials), ``ROOT/closed_loop/<suite>/`` and ``ROOT/closed_loop/sweep/``.
 
-Every option is checked before anything is simulated (:mod:`bench.closed_loop_checks`): the
-backends exist, are available and take the controller's QP family, durations are whole
-numbers of control periods, and the output directory (and ``--render`` path) can be written,
-so a bad path fails at once instead of after the run. A single run's records are written
+Every option is checked before anything is simulated (:mod:`bench.closed_loop_checks`,
+:mod:`bench.cli_checks`): the backends exist, are available and take the controller's QP
+family (and a backend option the controller does not use is not given), durations are whole
+numbers of control periods and the sweep's periods whole numbers of plant steps, MuJoCo
+accepts the model cube sides, counts are within their caps
+(:data:`bench.cli_options.OPTION_CAPS`), and the output directory (and ``--render`` path) can
+be written, so a bad path fails at once instead of after the run. A single run's records are written
 before its animation is rendered: a failed render loses nothing.
 """
 
@@ -22,14 +25,24 @@ import sys
 from typing import Any
 
 from c3bench.bench import store
+from c3bench.bench.cli_checks import (
+    MAX_MODEL_SIDE,
+    MAX_STACKED_SAMPLES,
+    check_backend_options,
+    check_model_side,
+    check_plant_period,
+    check_samples,
+)
 from c3bench.bench.cli_options import (
     EXIT_ERROR,
     EXIT_OK,
+    MAX_TRIALS,
     add_executor,
     add_list,
     add_quiet,
     add_results,
     nonnegative_int,
+    path_text,
     positive_float,
     positive_int,
 )
@@ -103,6 +116,25 @@ def contact_model_option(args: argparse.Namespace) -> str:
     return str(getattr(args, "contact_model", None) or "anitescu")
 
 
+def backend_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``qp_backend`` / ``projection`` fields of the controller: those given (the
+    defaults of :class:`ControllerSpec` otherwise); one given to a controller that does not
+    use it is an :class:`InputError` (:func:`bench.cli_checks.check_backend_options`)."""
+    given = {"qp_backend": getattr(args, "qp_backend", None),
+             "projection": getattr(args, "projection", None)}
+    check_backend_options(args.controller, {f"--{key.replace('_', '-')}": value
+                                            for key, value in given.items()})
+    return {key: value for key, value in given.items() if value is not None}
+
+
+def check_controller(spec: Any, config: Any) -> None:
+    """The options of ``spec`` that only the task configuration can judge: its samples
+    (:func:`bench.cli_checks.check_samples`) and model side
+    (:func:`bench.cli_checks.check_model_side`)."""
+    check_samples(spec.controller, spec.samples)
+    check_model_side("--model-l", spec.model_l, config)
+
+
 def cmd_closed_loop(args: argparse.Namespace) -> int:
     """Drive the MuJoCo cube with one controller and write the run's records."""
     from c3bench.bench.closed_loop import (
@@ -116,8 +148,8 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
     from c3bench.problems.scene import build_scene
 
     config = load_config(args.config)
-    spec = ControllerSpec(controller=args.controller, qp_backend=args.qp_backend,
-                          projection=args.projection, rho_schedule=args.rho_schedule,
+    spec = ControllerSpec(controller=args.controller, **backend_options(args),
+                          rho_schedule=args.rho_schedule,
                           admm_iterations=args.iterations, model_l=args.model_l,
                           samples=args.samples, weighting=not args.no_weighting,
                           seed=args.seed, feedback=args.feedback,
@@ -125,6 +157,7 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
                           contact_model=contact_model_option(args))
     control_steps(args.duration, config.mpc.dt, "--duration")
     check_backends(spec)
+    check_controller(spec, config)
     runs = writable_directory(store.closed_loop_dir(args.results, "runs"), "--results")
     if args.render:
         check_render_path(args.render)
@@ -167,12 +200,13 @@ def cmd_closed_loop(args: argparse.Namespace) -> int:
 
 def suite_trials(args: argparse.Namespace, default: int) -> int:
     """The episodes per configuration of ``closed-loop-suite``: ``--trials N`` when given
-    (an integer >= 1; :class:`InputError` otherwise), else the suite's ``default``."""
+    (an integer in [1, :data:`~bench.cli_options.MAX_TRIALS`]; :class:`InputError`
+    otherwise), else the suite's ``default``."""
     trials = getattr(args, "trials", None)
     if trials is None:
         return default
-    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
-        raise InputError(f"--trials must be an integer >= 1, got {trials!r}")
+    if isinstance(trials, bool) or not isinstance(trials, int) or not 1 <= trials <= MAX_TRIALS:
+        raise InputError(f"--trials must be an integer in [1, {MAX_TRIALS}], got {trials!r}")
     return trials
 
 
@@ -199,10 +233,16 @@ def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
 def cmd_sweep(args: argparse.Namespace) -> int:
     """Run the hyperparameter sweep (resumable) and write its outcome map."""
     from c3bench.bench.closed_loop_suite import run_cases, sweep_cases, write_report
+    from c3bench.problems.config import load_config
 
     cases = sweep_cases(args.dt, args.rho_schedule, args.q_box, args.model_l, args.qp_backend)
     if cases:
         check_backends(cases[0].spec)  # every case of the sweep has the same QP backend
+    config = load_config()
+    for dt in dict.fromkeys(args.dt):
+        check_plant_period("--dt", dt, config)
+    for side in dict.fromkeys(args.model_l):
+        check_model_side("--model-l", side, config)
     for case in cases:
         try:
             control_steps(case.duration, float(case.dt or 0.0))
@@ -226,13 +266,14 @@ def cmd_closed_loop_trials(args: argparse.Namespace) -> int:
     from c3bench.problems.config import load_config
     from c3bench.problems.instance import atomic_write_bytes
 
-    spec = ControllerSpec(controller=args.controller, qp_backend=args.qp_backend,
+    spec = ControllerSpec(controller=args.controller, **backend_options(args),
                           model_l=args.model_l, samples=args.samples,
                           feedback=args.feedback, contact_model=contact_model_option(args))
     config = load_config()
     control_steps(args.duration, config.mpc.dt, "--duration")
     rules = SuccessRules(hold_time=args.hold_time)
     check_backends(spec)
+    check_controller(spec, config)
     directory = writable_directory(store.closed_loop_dir(args.results, "trials") / spec.label(),
                                    "--results")
     cases = trial_cases(spec, args.trials, args.seed, args.duration, rules.hold_time)
@@ -259,12 +300,16 @@ def add_controller_options(parser: argparse.ArgumentParser, spec: Any) -> None:
 
     parser.add_argument("--controller", choices=CONTROLLERS, default=spec.controller,
                         help=f"controller (default: {spec.controller})")
-    parser.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
-                        help=f"registry name of the QP solver (default: {spec.qp_backend})")
+    parser.add_argument("--qp-backend", default=None, metavar="NAME",
+                        help=f"registry name of the QP solver (default: {spec.qp_backend}); "
+                             "not for the fast controllers, which solve their QP steps "
+                             "themselves")
     parser.add_argument("--model-l", type=positive_float, default=spec.model_l, metavar="L",
-                        help=f"cube side of the model (m; default: {spec.model_l:g})")
+                        help=f"cube side of the model (m; default: {spec.model_l:g}; at "
+                             f"most {MAX_MODEL_SIDE:g}, and one MuJoCo can build)")
     parser.add_argument("--samples", type=positive_int, default=spec.samples, metavar="N",
-                        help=f"robust variants: sampled models (default: {spec.samples})")
+                        help=f"robust variants: sampled models, c3plus-robust at most "
+                             f"{MAX_STACKED_SAMPLES} (default: {spec.samples})")
     parser.add_argument("--feedback", action="store_true",
                         help="low-level PD tracking of the plan's ball motion between steps")
     parser.add_argument("--contact-model", default="anitescu", metavar="MODEL",
@@ -282,6 +327,7 @@ def add_closed_loop(sub: Any) -> None:
         SWEEP_Q_BOXES,
         SWEEP_SCHEDULES,
     )
+    from c3bench.problems.config import load_config
     from c3bench.solvers.c3 import RHO_SCHEDULES
 
     spec = ControllerSpec()
@@ -289,9 +335,11 @@ def add_closed_loop(sub: Any) -> None:
                           description="One closed-loop run: the controller replans every dt "
                                       "from the measured MuJoCo state.")
     add_controller_options(loop, spec)
-    loop.add_argument("--projection", default=spec.projection, metavar="NAME",
-                      help=f"C3's MIQP projection backend (default: {spec.projection})")
-    loop.add_argument("--rho-schedule", choices=RHO_SCHEDULES, default=spec.rho_schedule,
+    loop.add_argument("--projection", default=None, metavar="NAME",
+                      help=f"C3's MIQP projection backend (default: {spec.projection}); "
+                           "c3 only")
+    loop.add_argument("--rho-schedule", choices=tuple(map(str, RHO_SCHEDULES)),
+                      default=spec.rho_schedule,
                       help=f"ADMM weight schedule (default: {spec.rho_schedule})")
     loop.add_argument("--iterations", type=positive_int, default=spec.admm_iterations,
                       metavar="N",
@@ -308,10 +356,10 @@ def add_closed_loop(sub: Any) -> None:
                            f"(default: {spec.qp_time_limit:g})")
     loop.add_argument("--seed", type=nonnegative_int, default=spec.seed, metavar="N",
                       help=f"seed of the sampled model sides (default: {spec.seed})")
-    loop.add_argument("--config", default=None, metavar="FILE",
+    loop.add_argument("--config", type=path_text, default=None, metavar="FILE",
                       help="task constants (TOML; default: the packaged cube_tipping.toml)")
     add_results(loop, "writes ROOT/closed_loop/runs/<controller label>/")
-    loop.add_argument("--render", default=None, metavar="GIF",
+    loop.add_argument("--render", type=path_text, default=None, metavar="GIF",
                       help="also write an animated GIF of the run to this path")
     add_quiet(loop)
     loop.set_defaults(handler=cmd_closed_loop)
@@ -362,13 +410,16 @@ def add_closed_loop(sub: Any) -> None:
                            description="C3+ over a grid of hyperparameters; the report maps "
                                        "each combination to its outcome (success or label).")
     add_list(sweep, "--dt", metavar="S", item=positive_float, default=SWEEP_DTS,
-             help="control periods (s)")
-    add_list(sweep, "--rho-schedule", metavar="SCHEDULE", choices=RHO_SCHEDULES,
+             help=f"control periods (s), each a whole multiple of the plant's time step, "
+                  f"{load_config().scene.plant_timestep:g} s")
+    add_list(sweep, "--rho-schedule", metavar="SCHEDULE",
+             choices=tuple(map(str, RHO_SCHEDULES)),
              default=SWEEP_SCHEDULES, help="ADMM weight schedules")
     add_list(sweep, "--q-box", metavar="Q", item=positive_float, default=SWEEP_Q_BOXES,
              help="cube-pose weights Q_box")
     add_list(sweep, "--model-l", metavar="L", item=positive_float, default=SWEEP_MODEL_LS,
-             help="cube sides of the model (m)")
+             help=f"cube sides of the model (m), each at most {MAX_MODEL_SIDE:g} and one "
+                  "MuJoCo can build")
     sweep.add_argument("--qp-backend", default=spec.qp_backend, metavar="NAME",
                        help=f"registry name of the QP solver (default: {spec.qp_backend})")
     add_executor(sweep, "runs")

@@ -4,6 +4,10 @@
 * :func:`add_list` / :class:`ListAction`: list options take ``--x a b``, ``--x a,b`` and
   ``--x a --x b`` alike;
 * :func:`positive_int`, :func:`nonnegative_int`, :func:`positive_float`: checked numbers;
+  :data:`OPTION_CAPS`: the largest value of a count option, whichever command has it
+  (:class:`Parser` applies it: a huge value is a usage error, not a run that hangs or runs
+  out of memory);
+* :func:`path_text`: a path option's text (not empty or blank);
 * :func:`add_results`, :func:`add_executor`, :func:`add_quiet`: options with one meaning in
   every command.
 """
@@ -11,6 +15,7 @@
 from __future__ import annotations
 
 import argparse
+import enum
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
@@ -20,12 +25,78 @@ EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 13
 disk), bad input, interrupted (Ctrl-C), terminated (SIGTERM)."""
 
 
+MAX_SAMPLES = 4096
+"""Most model samples (``--samples`` of ``perf``, ``closed-loop``, ``closed-loop-trials``):
+the GPU measurements use 1024 and 4096. The stacked ``c3plus-robust`` controller takes fewer
+(:data:`bench.cli_checks.MAX_STACKED_SAMPLES`)."""
+MAX_ITERATIONS = 1000
+"""Most ADMM iterations per control step (``--iterations`` of ``perf`` and ``closed-loop``;
+default 10): the geometric schedule's ``rho = 50 * 2^i`` overflows float64 past about 1018."""
+MAX_TRIALS = 10_000
+"""Most randomized trials (``--trials`` of ``closed-loop-trials`` and ``closed-loop-suite``;
+the full suite runs 100)."""
+OPTION_CAPS: dict[str, int] = {"--samples": MAX_SAMPLES, "--iterations": MAX_ITERATIONS,
+                               "--trials": MAX_TRIALS}
+"""The largest value of each count option, in every command that has it (:class:`Parser`)."""
+
+
 class Parser(argparse.ArgumentParser):
-    """``argparse`` parser whose usage errors are one line, ``error: ...``, exit code 2."""
+    """``argparse`` parser whose usage errors are one line, ``error: ...``, exit code 2.
+
+    Its subparsers are of this class too. :meth:`add_argument` caps the options of
+    :data:`OPTION_CAPS` and lists enumeration choices by their values (never an enum's
+    ``repr``).
+    """
+
+    def add_argument(self, *args: Any, **kwargs: Any) -> argparse.Action:
+        """``argparse``'s, with an option of :data:`OPTION_CAPS` capped (its type checks the
+        cap, its help states it) and ``choices`` of enumeration members given as values."""
+        cap = next((OPTION_CAPS[flag] for flag in args if flag in OPTION_CAPS), None)
+        if cap is not None and kwargs.get("type") is not None:
+            each = kwargs.get("nargs") in ("+", "*")
+            kwargs["type"] = at_most(kwargs["type"], cap)
+            kwargs["help"] = _with_cap(kwargs.get("help"), cap, each)
+        if kwargs.get("choices") is not None:
+            kwargs["choices"] = plain_choices(kwargs["choices"])
+        return super().add_argument(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         """Print ``error: message`` and exit with :data:`EXIT_USAGE`."""
         self.exit(EXIT_USAGE, f"error: {message} (see `{self.prog} --help`)\n")
+
+
+def plain_choices(choices: Any) -> Any:
+    """``choices`` with enumeration members replaced by their values (so that a usage error
+    lists ``geometric``, not ``<RhoScheduleName.GEOMETRIC: 'geometric'>``)."""
+    if isinstance(choices, str) or not isinstance(choices, Sequence | set | frozenset):
+        return choices
+    if not any(isinstance(choice, enum.Enum) for choice in choices):
+        return choices
+    return tuple(choice.value if isinstance(choice, enum.Enum) else choice
+                 for choice in choices)
+
+
+def at_most(convert: Callable[[str], Any], cap: int) -> Callable[[str], Any]:
+    """``convert``, then a check that the number (or every number of a tuple) is at most
+    ``cap``; a usage error saying so otherwise."""
+
+    def parse(text: str) -> Any:
+        value = convert(text)
+        numbers = value if isinstance(value, tuple) else (value,)
+        if any(number > cap for number in numbers):
+            raise argparse.ArgumentTypeError(f"expected at most {cap}, got {text!r}")
+        return value
+
+    parse.__name__ = getattr(convert, "__name__", "value")
+    return parse
+
+
+def _with_cap(help: str | None, cap: int, each: bool) -> str | None:
+    """``help`` stating the cap: inside its closing parenthesis when it ends with one."""
+    if help is None or help == argparse.SUPPRESS:
+        return help
+    words = f"{'each ' if each else ''}at most {cap}"
+    return f"{help[:-1]}; {words})" if help.endswith(")") else f"{help} ({words})"
 
 
 def _number(convert: Callable[[str], Any], kind: str, low: float, strict: bool
@@ -48,6 +119,14 @@ def _number(convert: Callable[[str], Any], kind: str, low: float, strict: bool
 positive_int = _number(int, "an integer >= 1", 1, strict=False)
 nonnegative_int = _number(int, "an integer >= 0", 0, strict=False)
 positive_float = _number(float, "a finite number > 0", 0.0, strict=True)
+
+
+def path_text(text: str) -> str:
+    """A path option's text: not empty or blank (an empty path would silently mean the
+    current directory)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a path, got an empty one ({text!r})")
+    return text
 
 
 def list_items(item: Callable[[str], Any] = str, choices: Sequence[str] | None = None
@@ -104,7 +183,7 @@ def add_list(parser: argparse.ArgumentParser, flag: str, *, metavar: str, help: 
 
 def add_results(parser: argparse.ArgumentParser, where: str) -> None:
     """Add ``--results ROOT``: the results root, with where this command reads or writes."""
-    parser.add_argument("--results", default="results", metavar="ROOT",
+    parser.add_argument("--results", type=path_text, default="results", metavar="ROOT",
                         help=f"results root (default: results); {where}")
 
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import TYPE_CHECKING, Any
 
+from c3bench.bench.cli_options import MAX_TRIALS
 from c3bench.bench.closed_loop import ControllerSpec
 from c3bench.bench.trials import trial_case
 from c3bench.problems.config import load_config
@@ -257,8 +258,9 @@ class ClosedLoopSuite:
         ``<configuration>-<trial, 4 digits>``, trials outermost (an interrupted run has
         the first trials of every configuration rather than all trials of the first)."""
         count = self.trials if trials is None else trials
-        if count < 1:
-            raise InputError(f"--trials must be an integer >= 1, got {count!r}")
+        if not 1 <= count <= MAX_TRIALS:
+            raise InputError(f"--trials must be an integer in [1, {MAX_TRIALS}], got "
+                             f"{count!r}")
         base = load_config()
         cases = []
         for index in range(count):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import stat
 import tomllib
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -19,6 +20,19 @@ from typing import Any
 from c3bench.problems.errors import InputError
 
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("cube_tipping.toml")
+MAX_CONFIG_BYTES = 1 << 20
+"""Largest configuration file read (1 MiB; the packaged one is about 2 kB): a larger file, or
+one that is not a regular file (a device such as ``/dev/zero``, a pipe), is refused before it
+is read."""
+MAX_HORIZON = 200
+"""Largest MPC horizon ``T`` (the reference study's is 7): every horizon QP and the MPCC grow
+with it (the stacked C3+ QP has some 25 variables per step), and dense matrices with its
+square."""
+MIN_PLANT_TIMESTEP = 1e-5
+"""Smallest plant (MuJoCo) step, in s (the task's is 0.001): a closed-loop second takes
+``1 / plant_timestep`` plant steps."""
+PERIOD_TOLERANCE = 1e-9
+"""Relative tolerance of ``dt`` being a whole number of plant steps (the plant's own)."""
 
 
 def _is_number(value: Any) -> bool:
@@ -59,6 +73,9 @@ class SceneConfig:
         for name in ("cube_side", "cube_mass", "ball_radius", "ball_mass", "force_limit",
                      "plant_timestep"):
             _require_positive(name, getattr(self, name))
+        if self.plant_timestep < MIN_PLANT_TIMESTEP:
+            raise ValueError(f"plant_timestep must be at least {MIN_PLANT_TIMESTEP:g} s, got "
+                             f"{self.plant_timestep!r}")
         for name in ("ball_start", "contact_solref"):
             _check_pair(name, getattr(self, name))
         for name in ("mu_table", "mu_ball"):
@@ -87,8 +104,9 @@ class MPCConfig:
 
     def __post_init__(self) -> None:
         _require_positive("dt", self.dt)
-        if not isinstance(self.horizon, int) or self.horizon < 1:
-            raise ValueError(f"T (horizon) must be an integer >= 1, got {self.horizon!r}")
+        if not isinstance(self.horizon, int) or not 1 <= self.horizon <= MAX_HORIZON:
+            raise ValueError(f"T (horizon) must be an integer in [1, {MAX_HORIZON}], got "
+                             f"{self.horizon!r}")
         for name in ("q_cube_pose", "q_ball_position", "q_velocity", "r_input",
                      "terminal_factor"):
             value = getattr(self, name)
@@ -186,12 +204,31 @@ def _build(cls: type, name: str, table: Any, source: Path) -> Any:
         raise InputError(f"{source}: [{name}] {error}") from error
 
 
+def _check_file(source: Path) -> None:
+    """``source`` is a regular file of at most :data:`MAX_CONFIG_BYTES` (checked before it is
+    opened: opening a pipe would block, reading a device might never end)."""
+    info = source.stat()
+    if stat.S_ISDIR(info.st_mode):
+        raise IsADirectoryError(source)
+    if not stat.S_ISREG(info.st_mode):
+        raise InputError(f"{source}: not a regular file (a device, pipe or socket), not a "
+                         "configuration file")
+    if info.st_size > MAX_CONFIG_BYTES:
+        raise InputError(f"{source}: {info.st_size} bytes; a configuration file is at most "
+                         f"{MAX_CONFIG_BYTES} bytes (1 MiB)")
+
+
 def _read_toml(source: Path) -> dict[str, Any]:
     """The tables of a TOML file; :class:`InputError` naming the file when it is missing,
-    unreadable or not TOML."""
+    unreadable, not a regular file, larger than :data:`MAX_CONFIG_BYTES` or not TOML."""
     try:
+        _check_file(source)
         with source.open("rb") as handle:
-            return tomllib.load(handle)
+            data = handle.read(MAX_CONFIG_BYTES + 1)
+        if len(data) > MAX_CONFIG_BYTES:  # it grew after the check
+            raise InputError(f"{source}: a configuration file is at most {MAX_CONFIG_BYTES} "
+                             "bytes (1 MiB)")
+        return tomllib.loads(data.decode("utf-8"))
     except FileNotFoundError as error:
         raise InputError(f"{source}: no such configuration file") from error
     except IsADirectoryError as error:
@@ -200,6 +237,16 @@ def _read_toml(source: Path) -> dict[str, Any]:
         raise InputError(f"{source}: cannot read ({error.strerror or error})") from error
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise InputError(f"{source}: not valid TOML ({error})") from error
+
+
+def _check_period(source: Path, scene: SceneConfig, mpc: MPCConfig) -> None:
+    """``[mpc] dt`` is a whole number (>= 1) of ``[scene] plant_timestep`` steps."""
+    count = round(mpc.dt / scene.plant_timestep)
+    if count < 1 or abs(count * scene.plant_timestep - mpc.dt) > \
+            PERIOD_TOLERANCE * max(1.0, mpc.dt):
+        raise InputError(f"{source}: [mpc] dt = {mpc.dt:g} is not a whole multiple of [scene] "
+                         f"plant_timestep = {scene.plant_timestep:g} (the plant runs whole "
+                         "steps within a control period)")
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -211,9 +258,13 @@ def load_config(path: str | Path | None = None) -> Config:
         A TOML file with ``[scene]``, ``[mpc]`` and ``[limits]`` tables; ``None`` reads the
         packaged default.
         Keys left out keep their defaults. An unknown table or key, a missing or unreadable
-        file, or a value out of range is an :class:`InputError` naming the file and the
-        table or key.
+        file (or one that is not a regular file, or larger than :data:`MAX_CONFIG_BYTES`), a
+        value out of range (``horizon`` at most :data:`MAX_HORIZON`, ``plant_timestep`` at
+        least :data:`MIN_PLANT_TIMESTEP`), or a ``dt`` that is not a whole number of plant
+        steps is an :class:`InputError` naming the file and the table or key.
     """
+    if path is not None and not str(path).strip():
+        raise InputError("the configuration file's path is empty")
     source = Path(path) if path is not None else DEFAULT_CONFIG_PATH
     table = _read_toml(source)
     unknown = sorted(set(table) - set(TABLES))
@@ -225,4 +276,5 @@ def load_config(path: str | Path | None = None) -> Config:
     scene = _build(SceneConfig, "scene", table.get("scene", {}), source)
     mpc = _build(MPCConfig, "mpc", table.get("mpc", {}), source)
     limits = _build(LimitsConfig, "limits", table.get("limits", {}), source)
+    _check_period(source, scene, mpc)
     return Config(scene=scene, mpc=mpc, limits=limits)

@@ -120,13 +120,15 @@ def test_bad_closed_loop_option_exits_2_at_once(argv: list[str], expected: str, 
         (tmp_path / "out" / "closed_loop" / "runs").iterdir())
 
 
-def test_fast_controller_ignores_the_qp_backend(tmp_path: Path,
-                                                capsys: pytest.CaptureFixture[str]) -> None:
-    """The fast path has no QP backend: a name that would be refused is not looked at."""
+def test_fast_controller_refuses_a_qp_backend(tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """The fast path has no QP backend: naming one is bad input (it would be ignored), before
+    anything is simulated or written."""
     code, err, _ = _cli(["closed-loop", "--controller", "c3plus-fast", "--qp-backend",
                          "nosuch", "--duration", "0.1", "--quiet", "--results",
-                         str(tmp_path)], capsys)
-    assert code == 0, err
+                         str(tmp_path / "results")], capsys)
+    assert code == 2 and "does not apply" in err and "--qp-backend" in err, err
+    assert not (tmp_path / "results").exists()
 
 
 def test_results_under_a_file_fails_before_simulating(tmp_path: Path,
