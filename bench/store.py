@@ -191,7 +191,7 @@ def normalise_row(row: Mapping[str, Any]) -> dict[str, Any]:
         A column is missing, or holds a value of another type, on one line naming the column:
         text such as ``'False'`` in a ``bool`` column (``None``, NA and NaN are False there;
         a stored table's are checked by :func:`read_results`), NaN or a fraction in an
-        ``int64`` one.
+        ``int64`` one, a time that is not finite and ``>= 0`` in a row with ``found``.
     """
     out: dict[str, Any] = {}
     for column in SCHEMA:
@@ -204,7 +204,16 @@ def normalise_row(row: Mapping[str, Any]) -> dict[str, Any]:
             shown = value.item() if isinstance(value, np.generic) else value
             raise ValueError(f"column {column.name!r} ({column.dtype}) holds {shown!r}: "
                              f"{error}") from None
+    if out["found"]:  # a found solve's laps passed the timing contract when it was stored
+        for name in TIME_COLUMNS:
+            if not (math.isfinite(out[name]) and out[name] >= 0.0):
+                raise ValueError(f"column {name!r} holds {out[name]!r} in a row that found a "
+                                 f"solution (its times are finite and >= 0)")
     return out
+
+
+TIME_COLUMNS = ("setup_time", "solve_time", "total_time")
+"""The time columns; finite and ``>= 0`` in every row with ``found`` (:func:`normalise_row`)."""
 
 
 def _coerce(value: Any, dtype: str) -> Any:

@@ -69,9 +69,9 @@ SCHEMA: tuple[Column, ...] = (
     Column("failure", "str", "Failure category from the registry: '', error, timeout, "
            "invalid_input, non_finite, unsupported, unavailable, infeasible, unbounded."),
     Column("status", "str", "Solver's own status text, or the failure reason."),
-    Column("success", "bool", "found and every residual of the family below tolerance and "
-           "cost_error below tolerance where a verified reference exists; projection / mpcc "
-           "also need that reference (bench.metrics)."),
+    Column("success", "bool", "found, total_time within time_limit, every residual of the "
+           "family below tolerance and cost_error below tolerance where a verified reference "
+           "exists; projection / mpcc also need that reference (bench.metrics)."),
     Column("verdict", "str", "Why success is False ('' when it is True); 'feasible, "
            "optimality not verified ...' for a projection / mpcc row without a verified "
            "reference optimum (counted apart as unverified)."),

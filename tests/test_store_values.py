@@ -152,3 +152,28 @@ def test_the_cli_exits_2_on_one_line(tmp_path: Path, capsys: pytest.CaptureFixtu
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert str(paths.parquet) in err
+
+
+def test_a_found_row_needs_finite_times() -> None:
+    """A stored cell that found a solution with a NaN or negative time is damaged (it would
+    change every time ratio silently); a row that found nothing may keep NaN laps."""
+    good = _table().to_dict("records")[0]
+    assert good["found"]
+    for name in ("setup_time", "solve_time", "total_time"):
+        for bad in (math.nan, math.inf, -1e-3):
+            with pytest.raises(ValueError, match=f"'{name}'"):
+                store.normalise_row({**good, name: bad})
+    lost = store.normalise_row({**good, "found": False, "total_time": math.nan})
+    assert math.isnan(lost["total_time"])
+
+
+def test_a_success_never_costs_more_than_the_time_limit() -> None:
+    """Failures are charged the time limit in every time aggregate, so an answer that took
+    longer than the limit (a limit below what the child's kill can enforce) is no success."""
+    from c3bench.bench.metrics import judge
+
+    within = row(family="lcp", setup_time=0.0, solve_time=2e-4, time_limit=1e-3)
+    assert judge(within)[0]
+    over = row(family="lcp", setup_time=0.0, solve_time=2.4e-4, time_limit=1e-9)
+    success, verdict = judge(over)
+    assert not success and "time_limit" in verdict
