@@ -13,8 +13,9 @@ Conventions, the same in every command:
 * ``--results ROOT`` is the results root; each command reads and writes its own folder under
   it (:mod:`bench.store`), default ``results``;
 * exit codes: 0 success, 1 error (nothing to read, a failed command, cells left missing, an
-  expected fault such as a disk filling up during the work: one line ``error: ...``), 2 bad
-  input (one line ``error: ...``, never a traceback: an option, a scheduler address, a
+  expected fault such as a disk filling up during the work or a Dask scheduler that does not
+  answer: one line ``error: ...``), 2 bad
+  input (one line ``error: ...``, never a traceback: an option, a malformed scheduler address, a
   results root that cannot be written, a configuration value, a damaged input or results
   file), 130 interrupted (Ctrl-C), 143 terminated (SIGTERM, one line ``terminated
   (SIGTERM)``): :func:`main` turns SIGTERM into :class:`Terminated` around every command, so
@@ -49,6 +50,7 @@ from c3bench.bench.cli_options import (
     add_quiet,
     add_results,
     nonnegative_int,
+    path_text,
     positive_float,
     positive_int,
 )
@@ -68,7 +70,7 @@ def load_plugins(entries: Sequence[str]) -> None:
     for entry in entries:
         try:
             registry.import_plugins([entry])
-        except Exception as error:  # a plugin's import may raise anything
+        except (Exception, SystemExit) as error:  # a plugin may raise anything, or exit
             raise InputError(f"cannot load plugin {entry!r} (--plugin): "
                              f"{type(error).__name__}: {error}") from error
 
@@ -101,6 +103,9 @@ def check_run(args: argparse.Namespace) -> None:
     from c3bench.solvers import registry
 
     cli_checks.check_output_path("--results", args.results)
+    if args.sequence_all and Start.SEQUENCE not in args.start:
+        raise InputError("--sequence-all widens the sequence cells, but --start "
+                         f"{','.join(args.start)} plans none (add --start sequence)")
     in_suite = _check_instances_option(args) if args.instances is not None else None
     if args.instances is None:
         cli_checks.check_suite_to_run(args.suite, args.results)
@@ -111,8 +116,8 @@ def check_run(args: argparse.Namespace) -> None:
                                else cli_checks.suite_families(args.suite, args.results))
     cli_checks.check_output_path("--results", store.SuitePaths.of(args.results, args.suite).root)
     instances = store.SuitePaths.of(args.results, args.suite).instances
-    if args.instances is None and instances.is_dir():
-        read_instance_dir(instances, args.skip_bad)
+    if args.instances is None and instances.is_dir():  # a packaged suite's is regenerated
+        read_instance_dir(instances, args.skip_bad, check_manifest=args.suite not in SUITES)
 
 
 def _check_instances_option(args: argparse.Namespace) -> set[str]:
@@ -240,7 +245,7 @@ def _add_benchmark(sub: Any) -> None:
                                      "skipped on the next run.")
     run.add_argument("--suite", default="quick", metavar="NAME",
                      help=f"suite ({', '.join(SUITES)}, or a stored one; default: quick)")
-    run.add_argument("--instances", default=None, metavar="DIR",
+    run.add_argument("--instances", default=None, metavar="DIR", type=path_text,
                      help="run this directory of instances (e.g. from `c3bench problems "
                           "import`) instead of a generated suite: they are copied to "
                           "ROOT/<DIR name>/instances (with a manifest written when DIR has "
@@ -394,12 +399,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         with terminate_as_exception():  # SIGTERM stops every command like Ctrl-C
             check_common(args)
             return int(args.handler(args))
-    except Terminated:
-        print("terminated (SIGTERM)", file=sys.stderr)
-        return EXIT_TERMINATED
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as stop:  # Terminated (SIGTERM) among them
+        if not getattr(stop, "__notes__", None):  # a run that said what it kept: one line
+            print("terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted",
+                  file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(stop, Terminated) else EXIT_INTERRUPTED
     except ValueError as error:  # InputError and SchemaVersionError among them
         return _fail(error, str(error), EXIT_USAGE, args.debug)
     except OSError as error:  # disk full, read-only, a path under a file, nothing to read

@@ -38,7 +38,6 @@ import itertools
 import json
 import math
 import os
-import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -309,7 +308,7 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
     retried once, then counted in :attr:`SuiteRun.missing`.
     """
     from c3bench.bench.executors import DaskPool, Executor, LocalPool, note_reason
-    from c3bench.bench.lock import exclusive_run, stopped_message
+    from c3bench.bench.lock import exclusive_run, report_stopped
 
     directory = Path(directory)
     cases = list(cases)
@@ -343,8 +342,7 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
                     note_reason(run.missing_reasons, result.reason or "no row returned")
                 bar.update(1)
         except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
-            print("\n" + stopped_message(stop, f"{len(run.rows)} runs", cell_dir),
-                  file=sys.stderr)
+            report_stopped(stop, f"{len(run.rows)} runs", cell_dir)
             raise
         finally:
             bar.close()

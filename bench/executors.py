@@ -415,8 +415,8 @@ class DaskPool:
             raise InputError(f"--scheduler {address!r}: {error}") from None
         except OSError as error:  # TimeoutError and CommClosedError among them
             raise SchedulerUnreachable(
-                f"cannot reach the Dask scheduler at {address} within {connect_timeout:g} s "
-                f"({error}); is it running?") from None
+                f"--scheduler {address}: cannot reach the Dask scheduler within "
+                f"{connect_timeout:g} s ({error}); is it running?") from None
 
     def _lose(self, error: BaseException | str) -> str:
         """Record that the scheduler is gone (silencing the client's reconnection noise)."""

@@ -199,11 +199,25 @@ def terminate_as_exception() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def stopped_message(stop: KeyboardInterrupt, stored: str, where: Path) -> str:
+def stopped_message(stop: KeyboardInterrupt, stored: str, where: Path,
+                    rerun: bool = False) -> str:
     """What an interrupted (Ctrl-C) or terminated (SIGTERM) run kept, on one line:
-    ``terminated: 12 cells stored in DIR; run again to resume``."""
+    ``terminated: 12 cells stored in DIR; run again to resume``; after ``--rerun`` (whose
+    unfinished cells still hold the earlier run's rows, which a plain run keeps): ``...;
+    the others are the earlier run's: run again with --rerun to redo them all``."""
     what = "terminated" if isinstance(stop, Terminated) else "interrupted"
-    return f"{what}: {stored} stored in {where}; run again to resume"
+    then = ("the others are the earlier run's: run again with --rerun to redo them all"
+            if rerun else "run again to resume")
+    return f"{what}: {stored} stored in {where}; {then}"
+
+
+def report_stopped(stop: KeyboardInterrupt, stored: str, where: Path,
+                   rerun: bool = False) -> None:
+    """Print :func:`stopped_message` on stderr and add it to ``stop``'s notes, so that the
+    command line's handler (:func:`c3bench.bench.cli.main`) prints no second line."""
+    message = stopped_message(stop, stored, where, rerun)
+    print("\n" + message, file=sys.stderr)
+    stop.add_note(message)
 
 
 @contextlib.contextmanager

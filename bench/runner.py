@@ -34,7 +34,7 @@ from typing import Any
 
 from c3bench.bench import store
 from c3bench.bench.executors import DaskPool, Executor, LocalPool, Task, note_reason
-from c3bench.bench.lock import exclusive_run, stopped_message
+from c3bench.bench.lock import exclusive_run, report_stopped
 from c3bench.bench.machine import machine_info, utc_now
 from c3bench.bench.planning import (
     DEFAULT_PRECISIONS,
@@ -541,8 +541,7 @@ def run_suite(
                                 options)
             _run_cells(pool, paths, tasks, name, progress, on_cell, tally)
         except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
-            print("\n" + stopped_message(stop, f"{tally.ran} cells", paths.cells),
-                  file=sys.stderr)
+            report_stopped(stop, f"{tally.ran} cells", paths.cells, rerun)
             raise
         finally:
             pool.close()

@@ -139,6 +139,18 @@ def test_plugin_whose_import_raises_is_bad_input(tmp_path: Path,
     assert "--plugin" in line and "RuntimeError: broken on import" in line
 
 
+def test_plugin_that_exits_is_bad_input(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """A plugin calling ``sys.exit()`` (at import, or as its FUNCTION) is bad input, not a
+    silent exit 0."""
+    (tmp_path / "c3bench_exiting_plugin.py").write_text("import sys\nsys.exit(0)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert main(["solvers", "--plugin", "c3bench_exiting_plugin"]) == 2
+    assert "--plugin" in _one_line_error(capsys.readouterr())
+    assert main(["solvers", "--plugin", "sys:exit"]) == 2
+    assert "SystemExit" in _one_line_error(capsys.readouterr())
+
+
 UNAVAILABLE_PLUGIN = '''
 from c3bench.problems.errors import BackendUnavailable
 from c3bench.solvers import registry
@@ -620,3 +632,13 @@ def test_perf_keeps_every_run_and_reports_the_latest(tmp_path: Path,
     assert len(csv) == len(stored)
     assert np.array_equal(np.sort(csv["run_id"].astype(str).unique()),
                           np.sort(stored["run_id"].astype(str).unique()))
+
+
+def test_sequence_all_without_sequence_cells_is_bad_input(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--sequence-all`` with starts that plan no sequence cell would change nothing."""
+    assert main(["run", "--results", str(tmp_path), "--start", "cold", "--sequence-all",
+                 "--quiet"]) == 2
+    line = _one_line_error(capsys.readouterr())
+    assert "--sequence-all" in line and "--start" in line
+    assert not any(tmp_path.iterdir())
