@@ -50,6 +50,7 @@ from c3bench.bench.cli_options import (
     add_quiet,
     add_results,
     nonnegative_int,
+    parse_command,
     path_text,
     positive_float,
     positive_int,
@@ -392,7 +393,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "--debug" in arguments:  # accepted anywhere on the line, parsed as the global flag
         arguments = ["--debug", *(word for word in arguments if word != "--debug")]
     try:
-        args = build_parser().parse_args(arguments)
+        args = parse_command(build_parser(), arguments)
     except SystemExit as stop:  # --help, --version, usage errors
         return stop.code if isinstance(stop.code, int) else EXIT_ERROR
     try:

@@ -40,6 +40,21 @@ OPTION_CAPS: dict[str, int] = {"--samples": MAX_SAMPLES, "--iterations": MAX_ITE
 """The largest value of each count option, in every command that has it (:class:`Parser`)."""
 
 
+_HELP_PROG = "_help_prog"
+"""Namespace attribute naming the command whose help a usage error points at."""
+
+
+def parse_command(parser: argparse.ArgumentParser, arguments: list[str]) -> argparse.Namespace:
+    """``parser.parse_args(arguments)``, with unrecognised arguments pointing at the help of
+    the command they were given to (``c3bench run --help``, not ``c3bench --help``)."""
+    parsed, extras = parser.parse_known_args(arguments)
+    if extras:
+        prog = getattr(parsed, _HELP_PROG, parser.prog)
+        parser.exit(EXIT_USAGE, f"error: unrecognized arguments: {' '.join(extras)} "
+                                f"(see `{prog} --help`)\n")
+    return parsed
+
+
 class Parser(argparse.ArgumentParser):
     """``argparse`` parser whose usage errors are one line, ``error: ...``, exit code 2.
 
@@ -47,6 +62,10 @@ class Parser(argparse.ArgumentParser):
     :data:`OPTION_CAPS` and lists enumeration choices by their values (never an enum's
     ``repr``).
     """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.set_defaults(**{_HELP_PROG: self.prog})  # the innermost command's wins
 
     def add_argument(self, *args: Any, **kwargs: Any) -> argparse.Action:
         """``argparse``'s, with an option of :data:`OPTION_CAPS` capped (its type checks the

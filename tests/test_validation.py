@@ -642,3 +642,11 @@ def test_sequence_all_without_sequence_cells_is_bad_input(
     line = _one_line_error(capsys.readouterr())
     assert "--sequence-all" in line and "--start" in line
     assert not any(tmp_path.iterdir())
+
+
+def test_an_unknown_argument_points_at_its_command_help(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", "--bogus"]) == 2
+    assert "(see `c3bench run --help`)" in _one_line_error(capsys.readouterr())
+    assert main(["problems", "list", "somewhere", "--bogus"]) == 2
+    assert "(see `c3bench problems list --help`)" in _one_line_error(capsys.readouterr())
