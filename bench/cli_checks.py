@@ -40,10 +40,6 @@ step with Clarabel: 32 samples 45 s and 1.6 GB resident, each QP solve within th
 takes up to :data:`bench.cli_options.MAX_SAMPLES` (4096 samples: 5.8 s a step, 0.5 GB)."""
 MAX_MODEL_SIDE = 10.0
 """Largest model cube side (m; the plant's is 0.30 and the ball's workspace 1.2 m wide)."""
-PERIOD_TOLERANCE = 1e-9
-"""Relative tolerance of a control period that is a whole number of plant steps (the plant's
-own: :meth:`c3bench.problems.scene.Plant.step`)."""
-
 SUITE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 """A suite name: a folder name under the results root (no separators, not hidden)."""
 
@@ -227,9 +223,10 @@ def check_model_side(option: str, side: float, config: Config) -> None:
 
 def check_plant_period(option: str, dt: float, config: Config) -> None:
     """A control period that is a whole number (>= 1) of the plant's time steps."""
+    from c3bench.problems.config import whole_steps
+
     step = config.scene.plant_timestep
-    count = round(dt / step)
-    if count < 1 or abs(count * step - dt) > PERIOD_TOLERANCE * max(1.0, dt):
+    if not whole_steps(dt, step):
         raise InputError(f"{option} {dt:g}: not a whole multiple of the plant's time step "
                          f"{step:g} s (the plant runs whole steps within a control period)")
 

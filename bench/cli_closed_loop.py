@@ -36,7 +36,6 @@ from c3bench.bench.cli_checks import (
 from c3bench.bench.cli_options import (
     EXIT_ERROR,
     EXIT_OK,
-    MAX_TRIALS,
     add_executor,
     add_list,
     add_quiet,
@@ -202,12 +201,10 @@ def suite_trials(args: argparse.Namespace, default: int) -> int:
     """The episodes per configuration of ``closed-loop-suite``: ``--trials N`` when given
     (an integer in [1, :data:`~bench.cli_options.MAX_TRIALS`]; :class:`InputError`
     otherwise), else the suite's ``default``."""
+    from c3bench.bench.closed_loop_configs import check_trials
+
     trials = getattr(args, "trials", None)
-    if trials is None:
-        return default
-    if isinstance(trials, bool) or not isinstance(trials, int) or not 1 <= trials <= MAX_TRIALS:
-        raise InputError(f"--trials must be an integer in [1, {MAX_TRIALS}], got {trials!r}")
-    return trials
+    return default if trials is None else check_trials(trials)
 
 
 def cmd_closed_loop_suite(args: argparse.Namespace) -> int:
@@ -327,7 +324,7 @@ def add_closed_loop(sub: Any) -> None:
         SWEEP_Q_BOXES,
         SWEEP_SCHEDULES,
     )
-    from c3bench.problems.config import load_config
+    from c3bench.problems.config import SceneConfig
     from c3bench.solvers.c3 import RHO_SCHEDULES
 
     spec = ControllerSpec()
@@ -338,7 +335,7 @@ def add_closed_loop(sub: Any) -> None:
     loop.add_argument("--projection", default=None, metavar="NAME",
                       help=f"C3's MIQP projection backend (default: {spec.projection}); "
                            "c3 only")
-    loop.add_argument("--rho-schedule", choices=tuple(map(str, RHO_SCHEDULES)),
+    loop.add_argument("--rho-schedule", choices=RHO_SCHEDULES,
                       default=spec.rho_schedule,
                       help=f"ADMM weight schedule (default: {spec.rho_schedule})")
     loop.add_argument("--iterations", type=positive_int, default=spec.admm_iterations,
@@ -411,9 +408,9 @@ def add_closed_loop(sub: Any) -> None:
                                        "each combination to its outcome (success or label).")
     add_list(sweep, "--dt", metavar="S", item=positive_float, default=SWEEP_DTS,
              help=f"control periods (s), each a whole multiple of the plant's time step, "
-                  f"{load_config().scene.plant_timestep:g} s")
+                  f"{SceneConfig.plant_timestep:g} s")
     add_list(sweep, "--rho-schedule", metavar="SCHEDULE",
-             choices=tuple(map(str, RHO_SCHEDULES)),
+             choices=RHO_SCHEDULES,
              default=SWEEP_SCHEDULES, help="ADMM weight schedules")
     add_list(sweep, "--q-box", metavar="Q", item=positive_float, default=SWEEP_Q_BOXES,
              help="cube-pose weights Q_box")

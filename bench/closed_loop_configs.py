@@ -65,6 +65,15 @@ SUITE_SEED = 0
 """Seed of the trial draws of both suites (trial ``i`` is the same episode in both)."""
 
 
+
+def check_trials(count: Any) -> int:
+    """``count`` trials per configuration: an integer in ``[1, MAX_TRIALS]``
+    (:data:`c3bench.bench.cli_options.MAX_TRIALS`), else :class:`InputError` naming
+    ``--trials``."""
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_TRIALS:
+        raise InputError(f"--trials must be an integer in [1, {MAX_TRIALS}], got {count!r}")
+    return count
+
 class SuiteGroup(StrEnum):
     """What a configuration of a closed-loop suite stands for (one colour per group in the
     report's figures)."""
@@ -257,10 +266,7 @@ class ClosedLoopSuite:
         """Every episode: ``trials`` (default :attr:`trials`) per configuration, named
         ``<configuration>-<trial, 4 digits>``, trials outermost (an interrupted run has
         the first trials of every configuration rather than all trials of the first)."""
-        count = self.trials if trials is None else trials
-        if not 1 <= count <= MAX_TRIALS:
-            raise InputError(f"--trials must be an integer in [1, {MAX_TRIALS}], got "
-                             f"{count!r}")
+        count = check_trials(self.trials if trials is None else trials)
         base = load_config()
         cases = []
         for index in range(count):

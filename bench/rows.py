@@ -111,7 +111,7 @@ def invalid_times(setup_time: float, solve_time: float) -> str:
     such laps is the backend's failure, not a fast or free success."""
     laps = {"setup_time": setup_time, "solve_time": solve_time}
     bad = [f"{name}={value!r}" for name, value in laps.items()
-           if not (math.isfinite(value) and value >= 0.0)]
+           if not store.valid_time(value)]
     return f"the backend reported an invalid time: {', '.join(bad)}" if bad else ""
 
 

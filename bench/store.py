@@ -206,10 +206,15 @@ def normalise_row(row: Mapping[str, Any]) -> dict[str, Any]:
                              f"{error}") from None
     if out["found"]:  # a found solve's laps passed the timing contract when it was stored
         for name in TIME_COLUMNS:
-            if not (math.isfinite(out[name]) and out[name] >= 0.0):
+            if not valid_time(out[name]):
                 raise ValueError(f"column {name!r} holds {out[name]!r} in a row that found a "
                                  f"solution (its times are finite and >= 0)")
     return out
+
+
+def valid_time(value: float) -> bool:
+    """A time of the timing contract (:mod:`c3bench.solvers.timing`): finite and ``>= 0``."""
+    return math.isfinite(value) and value >= 0.0
 
 
 TIME_COLUMNS = ("setup_time", "solve_time", "total_time")

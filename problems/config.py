@@ -239,11 +239,15 @@ def _read_toml(source: Path) -> dict[str, Any]:
         raise InputError(f"{source}: not valid TOML ({error})") from error
 
 
+def whole_steps(period: float, step: float) -> bool:
+    """``period`` is a whole number (>= 1) of ``step`` (to :data:`PERIOD_TOLERANCE`)."""
+    count = round(period / step)
+    return count >= 1 and abs(count * step - period) <= PERIOD_TOLERANCE * max(1.0, period)
+
+
 def _check_period(source: Path, scene: SceneConfig, mpc: MPCConfig) -> None:
     """``[mpc] dt`` is a whole number (>= 1) of ``[scene] plant_timestep`` steps."""
-    count = round(mpc.dt / scene.plant_timestep)
-    if count < 1 or abs(count * scene.plant_timestep - mpc.dt) > \
-            PERIOD_TOLERANCE * max(1.0, mpc.dt):
+    if not whole_steps(mpc.dt, scene.plant_timestep):
         raise InputError(f"{source}: [mpc] dt = {mpc.dt:g} is not a whole multiple of [scene] "
                          f"plant_timestep = {scene.plant_timestep:g} (the plant runs whole "
                          "steps within a control period)")

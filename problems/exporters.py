@@ -119,20 +119,23 @@ def previous_files(out: Path) -> set[str] | None:
             and Path(name).name == name and not name.startswith(".")}
 
 
-def check_export_target(out: Path) -> None:
+def check_export_target(out: Path) -> set[str] | None:
     """Refuse an output directory that an export must not write into: ``out`` may be absent,
     empty (hidden ``.tmp`` leftovers aside) or hold an earlier export (its ``index.json``,
     :func:`previous_files`), which is updated; anything else raises :class:`InputError`
-    naming ``out`` (an export never overwrites files it did not write)."""
+    naming ``out`` (an export never overwrites files it did not write). Returns the earlier
+    export's files (:func:`previous_files`), ``None`` when there is none."""
     if not out.is_dir():
-        return
+        return None
     found = sorted(child.name for child in out.iterdir()
                    if not (child.name.startswith(".") and child.name.endswith(".tmp")))
-    if found and previous_files(out) is None:
+    earlier = previous_files(out)
+    if found and earlier is None:
         shown = ", ".join(found[:3]) + (", ..." if len(found) > 3 else "")
         raise InputError(f"{out}: holds files that no export wrote ({shown}; no export's "
                          f"{INDEX}); export into a new or empty directory, or one an earlier "
                          "export wrote")
+    return earlier
 
 
 def export_qpsolvers(problems: list[Problem], out: Path) -> Export:
@@ -142,8 +145,7 @@ def export_qpsolvers(problems: list[Problem], out: Path) -> Export:
     interrupted export can be redone into the same folder) and last; the ``.npz`` files an
     earlier export there listed that this one does not write are removed.
     """
-    check_export_target(out)
-    earlier = previous_files(out)
+    earlier = check_export_target(out)
     result = Export(index=out / INDEX, test_set=out / SHIM_NAME)
     if earlier is None:  # mark the folder as an export's before writing into it
         _write_index(result.index, [], {})

@@ -64,6 +64,7 @@ from c3bench.problems.conic import (
 from c3bench.problems.errors import InputError
 from c3bench.problems.families import lcp_general
 from c3bench.problems.instance import MANIFEST, Problem, atomic_write_bytes, save_problem
+from c3bench.problems.instance_contract import check_real
 from c3bench.problems.names import Family
 
 QPSOLVERS_KEYS: tuple[str, ...] = ("P", "q", "G", "h", "A", "b", "lb", "ub")
@@ -81,8 +82,6 @@ def instance_name(stem: str) -> str:
     return name or "problem"
 
 
-_REAL_KINDS = "biuf"
-"""NumPy dtype kinds of real numbers (bool, signed and unsigned integers, floats)."""
 PICKLED_HELP = ("save it as a dense array (e.g. P.toarray() for a scipy.sparse matrix), "
                 "write the file with c3bench.problems.conic.save_conic (which densifies "
                 "scipy.sparse and casadi.DM values), or import the qpsolvers.Problem from a "
@@ -106,11 +105,7 @@ def _real(key: str, value: Any) -> np.ndarray | None:
     array = np.asarray(value)
     if array.dtype == object and array.ndim == 0 and array.item() is None:
         return None
-    if array.dtype.kind == "c":
-        raise ValueError(f"key {key!r} is complex ({array.dtype}); a QP's data are real "
-                         "numbers (nothing is cut to its real part)")
-    if array.dtype.kind not in _REAL_KINDS:
-        raise ValueError(f"key {key!r} holds {array.dtype} values, not real numbers")
+    check_real(key, array)
     return array
 
 

@@ -31,6 +31,7 @@ from c3bench.problems.instance_contract import (  # re-exported: the contract
     REQUIRED_META,
     SCHEMA_VERSION,
     Problem,
+    check_real,
     lcp_data,
 )
 
@@ -221,22 +222,15 @@ def load_problem(path: str | Path) -> Problem:
         raise InstanceFormatError(f"{json_path}: {error}") from error
 
 
-_REAL_KINDS = "biuf"
-"""NumPy dtype kinds of real numbers (bool, signed and unsigned integers, floats)."""
-
-
 def _check_real(arrays: dict[str, np.ndarray], npz_path: Path) -> None:
-    """Every stored array holds real numbers: :class:`InstanceFormatError` naming the file
-    and the key for complex (never cut to its real part), string or other data."""
+    """Every stored array holds real numbers (:func:`check_real`): :class:`InstanceFormatError`
+    naming the file and the key for complex (never cut to its real part), string or other
+    data."""
     for key in sorted(arrays):
-        kind = arrays[key].dtype.kind
-        if kind == "c":
-            raise InstanceFormatError(f"{npz_path}: key {key!r} is complex "
-                                      f"({arrays[key].dtype}); instance data are real numbers "
-                                      "(nothing is cut to its real part)")
-        if kind not in _REAL_KINDS:
-            raise InstanceFormatError(f"{npz_path}: key {key!r} holds {arrays[key].dtype} "
-                                      "values, not real numbers")
+        try:
+            check_real(key, arrays[key])
+        except ValueError as error:
+            raise InstanceFormatError(f"{npz_path}: {error}") from None
 
 
 def required_meta(family: str, has_lcs: bool) -> tuple[str, ...]:

@@ -129,7 +129,8 @@ class Problem:
         if rows == columns != n:  # a square P of another size: q is the one at fault
             raise ValueError(f"{self.name}: q has length {n} but P is {rows} x {columns}: q "
                              f"must have length {rows} (or P must have shape ({n}, {n}))")
-        self.P = _as_float("P", self.P, shape=(n, n))
+        if self.P.shape != (n, n):
+            raise ValueError(f"P must have shape {(n, n)}, got {self.P.shape}")
         if not np.all(np.isfinite(self.P)):
             raise ValueError(f"{self.name}: P has non-finite entries")
         if not np.all(np.isfinite(self.q)):
@@ -236,6 +237,20 @@ def _check_lcp_general(problem: Problem) -> None:
         extra.append("ub")
     if extra:
         raise ValueError(f"{name}: an lcp_general instance takes no {', '.join(extra)}")
+
+
+REAL_KINDS = "biuf"
+"""NumPy dtype kinds of real numbers (bool, signed and unsigned integers, floats)."""
+
+
+def check_real(key: str, array: np.ndarray) -> None:
+    """``ValueError`` naming ``key`` unless ``array`` holds real numbers (complex data are
+    never cut to their real part)."""
+    if array.dtype.kind == "c":
+        raise ValueError(f"key {key!r} is complex ({array.dtype}); instance data are real "
+                         "numbers (nothing is cut to its real part)")
+    if array.dtype.kind not in REAL_KINDS:
+        raise ValueError(f"key {key!r} holds {array.dtype} values, not real numbers")
 
 
 def _as_float(name: str, value: Any, ndim: int | None = None,
