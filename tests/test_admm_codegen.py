@@ -3,7 +3,7 @@ step; compiled_passes_codegen.py, the linear passes): the backward step is bit f
 lane loops' step (the readable kernel) on random structures, sizes, lane counts and precisions,
 failing pivots included; the whole compiled kernel with and without generated code (step and
 passes) gives the same bits on random batches of 1 to 40 samples and on the cube's push; the
-disk cache and a failed compilation. No timing."""
+disk cache and a failed compilation; the kernel arrays start on a cache line. No timing."""
 
 from __future__ import annotations
 
@@ -197,3 +197,17 @@ def test_the_disk_cache_is_keyed_by_the_cpu(tmp_path: Any,
     _generated_step(1, 2, 2, pattern, S.copy(), ABd, Hy)
     assert codegen.CODEGEN.compiled == compiled + 2
     assert len(list((tmp_path / "c3bench_codegen").glob("*.o"))) == 2
+
+
+@pytest.mark.parametrize("shape", [(7, 10, 10, 16), (10, 21, 16), (3,), (0, 4)])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_kernel_arrays_start_on_a_cache_line(shape: tuple[int, ...], dtype: Any) -> None:
+    from c3bench.solvers.admm.compiled_factors import ALIGNMENT, aligned_empty
+
+    for _ in range(5):
+        array = aligned_empty(shape, dtype, 2.5)
+        assert array.shape == shape and array.dtype == dtype and array.flags.c_contiguous
+        assert array.ctypes.data % ALIGNMENT == 0 or array.size == 0
+        assert np.all(array == 2.5)
+        array[...] = 1.0  # writable, its own memory
+        assert np.all(array == 1.0)

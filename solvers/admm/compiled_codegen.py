@@ -9,9 +9,10 @@ kernel is the readable one. This module writes the same step out for one structu
 and one precision as LLVM IR:
 
 * every product over the structural nonzeros is unrolled at generation time;
-* the lanes are worked ``width`` at a time as LLVM vectors, each value loaded once;
+* the lanes are worked ``width`` at a time as LLVM vectors;
 * the whole step for those lanes is straight-line code, so the accumulators live in
-  registers instead of memory.
+  registers instead of memory, written in an order that keeps few values alive at once
+  (:mod:`.compiled_ir`, which writes the IR; this module compiles, caches and calls it).
 
 The IR is compiled by LLVM through llvmlite (numba's own code generator, installed with it,
 no C compiler needed) and called from the numba kernel through its address
@@ -64,15 +65,17 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
+from c3bench.solvers.admm.compiled_ir import FUNCTION, Emitter, step_ir
+
 __all__ = ["CODEGEN", "ENV_SWITCH", "Emitter", "call_step", "call_through_address", "enabled",
            "generated", "step_ir", "step_table", "vector_width"]
 
 ENV_SWITCH = "C3BENCH_CODEGEN"
 """Environment variable: ``0``, ``off`` or ``false`` switches the generated code off."""
-FORMAT = 2
+FORMAT = 3
 """Version of the generator, part of the disk cache's key (raise it when the IR or the calling
-convention changes; 2: the passes take ``delta`` and ``w`` instead of their difference)."""
-FUNCTION = "c3bench_riccati_step"
+convention changes; 2: the passes take ``delta`` and ``w`` instead of their difference; 3: the
+step column by column, :mod:`.compiled_ir`)."""
 
 
 @dataclass
@@ -114,202 +117,6 @@ def vector_width(lanes: int, dtype: Any) -> int:
         if lanes % width == 0 and width * size <= bits:
             return width
     return 4
-
-
-class Emitter:
-    """Straight-line IR of one chunk of ``width`` lanes (``width`` 1: scalars): numbered
-    values, each input loaded once."""
-
-    def __init__(self, scalar: str, width: int) -> None:
-        self.scalar = scalar
-        self.vector = f"<{width} x {scalar}>" if width > 1 else scalar
-        self.width = width
-        self.zero = "zeroinitializer" if width > 1 else "0.0"
-        self.one = _splat(scalar, width, "1.0") if width > 1 else "1.0"
-        self.lines: list[str] = []
-        self.count = 0
-        self.loaded: dict[tuple[str, int], str] = {}
-
-    def value(self) -> str:
-        self.count += 1
-        return f"%v{self.count}"
-
-    def emit(self, text: str) -> str:
-        """Emit ``<new value> = text``; returns the new value."""
-        name = self.value()
-        self.lines.append(f"  {name} = {text}")
-        return name
-
-    def load(self, base: str, offset: int) -> str:
-        key = (base, offset)
-        if key not in self.loaded:
-            pointer = self.emit(f"getelementptr inbounds {self.scalar}, ptr {base}, i64 {offset}")
-            self.loaded[key] = self.emit(f"load {self.vector}, ptr {pointer}, align 8")
-        return self.loaded[key]
-
-    def broadcast(self, base: str, offset: int) -> str:
-        """The scalar ``base[offset]`` in every lane (loaded once)."""
-        key = ("scalar " + base, offset)
-        if key not in self.loaded:
-            pointer = self.emit(f"getelementptr inbounds {self.scalar}, ptr {base}, i64 {offset}")
-            value = self.emit(f"load {self.scalar}, ptr {pointer}, align 8")
-            if self.width > 1:
-                value = self.emit(f"insertelement {self.vector} poison, {self.scalar} {value}, "
-                                  "i64 0")
-                value = self.emit(f"shufflevector {self.vector} {value}, {self.vector} poison, "
-                                  f"<{self.width} x i32> zeroinitializer")
-            self.loaded[key] = value
-        return self.loaded[key]
-
-    def store(self, base: str, offset: int, value: str) -> None:
-        pointer = self.emit(f"getelementptr inbounds {self.scalar}, ptr {base}, i64 {offset}")
-        self.lines.append(f"  store {self.vector} {value}, ptr {pointer}, align 8")
-
-    def op(self, name: str, left: str, right: str) -> str:
-        return self.emit(f"{name} {self.vector} {left}, {right}")
-
-    def multiply_add(self, accumulator: str, left: str, right: str, subtract: bool = False
-                     ) -> str:
-        """``accumulator + left right`` (or ``-``), rounded twice as the lane loops do."""
-        return self.op("fsub" if subtract else "fadd", accumulator,
-                       self.op("fmul", left, right))
-
-
-def _splat(scalar: str, width: int, value: str) -> str:
-    return "<" + ", ".join([f"{scalar} {value}"] * width) + ">"
-
-
-def _columns(column_start: np.ndarray, column_rows: np.ndarray) -> list[list[int]]:
-    return [[int(c) for c in column_rows[column_start[b]:column_start[b + 1]]]
-            for b in range(len(column_start) - 1)]
-
-
-def _products(e: Emitter, nx: int, nv: int, columns: list[list[int]], lanes: int
-              ) -> tuple[dict[tuple[int, int], str], dict[tuple[int, int], str]]:
-    """``S [A B_v]`` (``SAB``), ``S d`` (stored) and ``[Q_vx Q_vv]`` (lower part, ``Qv``)."""
-    ny, zero = nx + nv, e.zero
-    SAB: dict[tuple[int, int], str] = {}
-    for b in range(ny):
-        for a in range(nx):
-            acc = zero
-            for c in columns[b]:
-                acc = e.multiply_add(acc, e.load("%S", (a * nx + c) * lanes),
-                                     e.load("%AB", (c * (ny + 1) + b) * lanes))
-            SAB[a, b] = acc
-    for a in range(nx):
-        acc = zero
-        for c in columns[ny]:
-            acc = e.multiply_add(acc, e.load("%S", (a * nx + c) * lanes),
-                                 e.load("%AB", (c * (ny + 1) + ny) * lanes))
-        e.store("%Sd", a * lanes, acc)
-    Qv: dict[tuple[int, int], str] = {}
-    for a in range(nv):
-        for b in range(nx + a + 1):
-            acc = e.load("%Hy", ((nx + a) * ny + b) * lanes)
-            for c in columns[nx + a]:
-                acc = e.multiply_add(acc, e.load("%AB", (c * (ny + 1) + nx + a) * lanes),
-                                     SAB[c, b])
-            Qv[a, b] = acc
-    return SAB, Qv
-
-
-def _cholesky(e: Emitter, nx: int, nv: int, Qv: dict[tuple[int, int], str], lanes: int
-              ) -> tuple[dict[tuple[int, int], str], dict[int, str]]:
-    """``Q_vv = L L^T`` with ``1 / L[a, a]`` on the diagonal; a lane whose pivot is not
-    positive records ``k`` in ``fb`` (first failure) and continues on a unit pivot."""
-    w, vector, one = e.width, e.vector, e.one
-    bits = 64 if e.scalar == "double" else 32
-    failed = e.emit(f"load <{w} x i64>, ptr %fb, align 8")
-    k = e.emit(f"insertelement <{w} x i64> poison, i64 %k, i64 0")
-    k = e.emit(f"shufflevector <{w} x i64> {k}, <{w} x i64> poison, <{w} x i32> zeroinitializer")
-    L: dict[tuple[int, int], str] = {}
-    inverse: dict[int, str] = {}
-    for a in range(nv):
-        for b in range(a + 1):
-            sv = Qv[a, nx + b]
-            for c in range(b):
-                sv = e.multiply_add(sv, L[a, c], L[b, c], subtract=True)
-            if a != b:
-                L[a, b] = e.op("fmul", sv, inverse[b])
-                continue
-            positive = e.emit(f"fcmp ogt {vector} {sv}, zeroinitializer")
-            first = e.emit(f"icmp slt <{w} x i64> {failed}, zeroinitializer")
-            fails = e.emit(f"xor <{w} x i1> {positive}, {_splat('i1', w, 'true')}")
-            record = e.emit(f"and <{w} x i1> {fails}, {first}")
-            failed = e.emit(f"select <{w} x i1> {record}, <{w} x i64> {k}, <{w} x i64> {failed}")
-            pivot = e.emit(f"select <{w} x i1> {positive}, {vector} {sv}, {vector} {one}")
-            root = e.emit(f"call {vector} @llvm.sqrt.v{w}f{bits}({vector} {pivot})")
-            inverse[a] = L[a, a] = e.op("fdiv", one, root)
-    e.lines.append(f"  store <{w} x i64> {failed}, ptr %fb, align 8")
-    for a in range(nv):
-        for b in range(a + 1):
-            e.store("%L", (a * nv + b) * lanes, L[a, b])
-    return L, inverse
-
-
-def _update(e: Emitter, nx: int, nv: int, columns: list[list[int]], lanes: int,
-            SAB: dict[tuple[int, int], str], Qv: dict[tuple[int, int], str],
-            L: dict[tuple[int, int], str], inverse: dict[int, str]) -> None:
-    """``Y = L^-1 Q_vx`` and ``S_k = H_xx + A^T S A - Y^T Y`` (upper triangle, mirrored)."""
-    ny = nx + nv
-    Y: dict[tuple[int, int], str] = {}
-    for a in range(nv):
-        for b in range(nx):
-            acc = Qv[a, b]
-            for c in range(a):
-                acc = e.multiply_add(acc, L[a, c], Y[c, b], subtract=True)
-            Y[a, b] = e.op("fmul", acc, inverse[a])
-            e.store("%Y", (a * nx + b) * lanes, Y[a, b])
-    for a in range(nx):
-        for b in range(a, nx):
-            acc = e.load("%Hy", (a * ny + b) * lanes)
-            for c in columns[a]:
-                acc = e.multiply_add(acc, e.load("%AB", (c * (ny + 1) + a) * lanes), SAB[c, b])
-            for c in range(nv):
-                acc = e.multiply_add(acc, Y[c, a], Y[c, b], subtract=True)
-            e.store("%S", (a * nx + b) * lanes, acc)
-            if b != a:
-                e.store("%S", (b * nx + a) * lanes, acc)
-
-
-def step_ir(nx: int, nv: int, column_start: np.ndarray, column_rows: np.ndarray, lanes: int,
-            dtype: Any, width: int) -> str:
-    """LLVM IR of ``void c3bench_riccati_step(S, ABd, Hy, Y, L, Sd, fb, k, count)``: the
-    backward step of :func:`~c3bench.solvers.admm.compiled_kernels._riccati_lanes` for lanes
-    ``0 .. count`` (a multiple of ``width``) of arrays whose lane axis has ``lanes`` entries
-    (``S`` (nx, nx), ``ABd`` (nx, ny + 1), ``Hy`` (ny, ny), ``Y`` (nv, nx), ``L`` (nv, nv),
-    ``Sd`` (nx,), lanes last, C order; ``fb`` (count,) int64), over the structural nonzeros
-    ``column_start``, ``column_rows`` of ``[A B_v d]``."""
-    scalar = "double" if np.dtype(dtype) == np.float64 else "float"
-    e = Emitter(scalar, width)
-    columns = _columns(column_start, column_rows)
-    SAB, Qv = _products(e, nx, nv, columns, lanes)
-    L, inverse = _cholesky(e, nx, nv, Qv, lanes)
-    _update(e, nx, nv, columns, lanes, SAB, Qv, L, inverse)
-    bits = 64 if scalar == "double" else 32
-    vector = e.vector
-    arrays = ("S", "AB", "Hy", "Y", "L", "Sd")
-    chunk = "\n".join(f"  %{name} = getelementptr inbounds {scalar}, ptr %{name}0, i64 %lane"
-                      for name in arrays)
-    parameters = ", ".join(f"ptr noalias %{name}0" for name in arrays)
-    return f"""declare {vector} @llvm.sqrt.v{width}f{bits}({vector})
-
-define void @{FUNCTION}({parameters}, ptr noalias %fb0, i64 %k, i64 %count) {{
-entry:
-  %empty = icmp sle i64 %count, 0
-  br i1 %empty, label %exit, label %chunk
-chunk:
-  %lane = phi i64 [0, %entry], [%next, %chunk]
-{chunk}
-  %fb = getelementptr inbounds i64, ptr %fb0, i64 %lane
-{chr(10).join(e.lines)}
-  %next = add i64 %lane, {width}
-  %more = icmp slt i64 %next, %count
-  br i1 %more, label %chunk, label %exit
-exit:
-  ret void
-}}
-"""
 
 
 # --- compilation -------------------------------------------------------------------------------

@@ -16,7 +16,27 @@ import numpy as np
 from c3bench.problems.names import Block
 from c3bench.solvers.admm import compiled_kernels as kernels
 
-__all__ = ["CompiledFactors", "factor_failure", "plan_group", "rho_key"]
+__all__ = ["ALIGNMENT", "CompiledFactors", "aligned_empty", "factor_failure", "plan_group",
+           "rho_key"]
+
+ALIGNMENT = 64
+"""Bytes: the kernel's arrays start on a cache line (:func:`aligned_empty`)."""
+
+
+def aligned_empty(shape: tuple[int, ...], dtype: Any, fill: float | None = None) -> np.ndarray:
+    """An array of ``shape`` whose data starts on a :data:`ALIGNMENT`-byte boundary (filled
+    with ``fill`` when given). numpy aligns to 16 bytes, so a four-lane vector (32 bytes) of a
+    16-byte-aligned array with 16 lanes per entry crosses a cache line every other load;
+    measured on the generated backward step (znver3, 16 lanes): all six arrays misaligned by
+    16 bytes 1.51 us per four lanes, aligned 1.19."""
+    dtype = np.dtype(dtype)
+    count = int(np.prod(shape, dtype=np.int64))
+    raw = np.empty(count * dtype.itemsize + ALIGNMENT, np.uint8)
+    start = -int(raw.ctypes.data) % ALIGNMENT
+    array: np.ndarray = raw[start:start + count * dtype.itemsize].view(dtype).reshape(shape)
+    if fill is not None:
+        array.fill(fill)
+    return array
 
 
 @dataclass
@@ -53,9 +73,11 @@ class CompiledFactors:
         lanes = m * n
         if lanes <= kernels.LANE_BLOCK:  # room for the padding lanes of an in-place block
             lanes = kernels.padded_lanes(lanes)
-        return cls(Y=np.empty((T, nv, nx, lanes), dtype), L=np.zeros((T, nv, nv, lanes), dtype),
-                   Sd=np.empty((T, nx, lanes), dtype), D=np.empty((nx + nv, lanes), dtype),
-                   ABd=np.empty((nx, nx + nv + 1, lanes), dtype),
+        return cls(Y=aligned_empty((T, nv, nx, lanes), dtype),
+                   L=aligned_empty((T, nv, nv, lanes), dtype, 0.0),
+                   Sd=aligned_empty((T, nx, lanes), dtype),
+                   D=aligned_empty((nx + nv, lanes), dtype),
+                   ABd=aligned_empty((nx, nx + nv + 1, lanes), dtype),
                    failed=np.full(m * n, -1, np.int64), slots=m, samples=n)
 
     @property

@@ -40,12 +40,8 @@ import numpy as np
 from numba import types
 from numba.extending import intrinsic
 
-from c3bench.solvers.admm.compiled_codegen import (
-    Emitter,
-    call_through_address,
-    generated,
-    vector_width,
-)
+from c3bench.solvers.admm.compiled_codegen import call_through_address, generated, vector_width
+from c3bench.solvers.admm.compiled_ir import Emitter
 
 __all__ = ["FUNCTION", "call_passes", "passes_address", "passes_ir"]
 
