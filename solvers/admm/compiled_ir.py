@@ -22,9 +22,9 @@ instead of keeping a load from an earlier column alive in a register or on the s
 ``Y`` column by column and ``S_k`` row by row, each row's ``Y`` column loaded once.
 
 Measured on the 2-core EPYC VM (znver3, AVX2, load below 1), one backward step of 16 lanes,
-the planar cube's structure: 1.47-1.50 -> 1.30-1.34 us per four lanes against the
-product-by-product order (stack accesses per four lanes 3,550 -> 1,870), bit for bit the same
-results.
+the planar cube's structure, alternated with the product-by-product order in one process:
+1.46 -> 1.23 and 1.55 -> 1.42 us per four lanes in two comparisons (stack accesses per four
+lanes 3,550 -> 1,868), bit for bit the same results.
 
 References: Lattner & Adve, "LLVM: a compilation framework for lifelong program analysis &
 transformation", CGO 2004 (the IR); on ordering straight-line code for register pressure and
