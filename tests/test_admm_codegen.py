@@ -1,9 +1,10 @@
 """Tests of the generated code (solvers/admm/compiled_ir.py and compiled_codegen.py, the
-factorisation's backward step; compiled_passes_codegen.py, the linear passes): the backward step is bit for bit the numba
-lane loops' step (the readable kernel) on random structures, sizes, lane counts and precisions,
-failing pivots included; the whole compiled kernel with and without generated code (step and
-passes) gives the same bits on random batches of 1 to 40 samples and on the cube's push; the
-disk cache and a failed compilation; the kernel arrays start on a cache line. No timing."""
+factorisation's backward step; compiled_passes_codegen.py, the linear passes): the backward
+step is bit for bit the numba lane loops' step (the readable kernel) on random structures,
+sizes, lane counts and precisions, failing pivots included; the whole compiled kernel with
+and without generated code (step and passes) gives the same bits on random batches of 1 to 40
+samples and on the cube's push; the disk cache and a failed compilation; the kernel arrays
+start on a cache line. No timing."""
 
 from __future__ import annotations
 
