@@ -141,12 +141,15 @@ def _backward(e: Emitter, s: _Layout, gy: list[list[str]], columns: list[list[in
 
 
 def _forward(e: Emitter, s: _Layout, tt: list[list[str]], rows: list[list[int]]) -> None:
-    """The rollout with ``v = -L^-T (Y x + t_k)``, ``z`` scaled back by ``D`` into ``zt``,
-    then ``eta = M y + c``."""
+    """The rollout with ``v = -L^-T (Y x + t_k)``, ``z`` scaled back by ``D`` into ``zt`` and
+    ``eta = M y + c``, step by step: each step's ``z`` is stored and its ``eta`` formed as soon
+    as its ``v`` is known, so that no step's values stay alive to the end of the rollout
+    (written after the whole rollout, they were spilled: the passes about 5 % faster on the
+    AVX2 VM, 4.84-4.90 -> 4.57-4.66 us per four samples alternated, bit for bit the same)."""
     nx, nv, ny, T = s.nx, s.nv, s.ny, s.T
     x0 = [e.broadcast("%vec", a) for a in range(nx)]
     x = [e.op("fdiv", x0[a], e.load("%D", s.D(a))) for a in range(nx)]
-    z: list[list[str]] = [list(x0)]
+    z_x = list(x0)
     for k in range(T):
         r = []
         for a in range(nv):
@@ -160,7 +163,14 @@ def _forward(e: Emitter, s: _Layout, tt: list[list[str]], rows: list[list[int]])
             for b in range(a + 1, nv):
                 acc = e.multiply_add(acc, e.load("%L", s.L(k, b, a)), v[b], subtract=True)
             v[a] = e.op("fmul", acc, e.load("%L", s.L(k, a, a)))
-        z[k].extend(e.op("fmul", v[a], e.load("%D", s.D(nx + a))) for a in range(nv))
+        z = z_x + [e.op("fmul", v[a], e.load("%D", s.D(nx + a))) for a in range(nv)]
+        for a, value in enumerate(z):
+            e.store("%zt", s.zt(k, a), value)
+        for b in range(s.nlam):
+            acc = e.load("%M", s.M(b, ny))
+            for a in range(ny):
+                acc = e.multiply_add(acc, e.load("%M", s.M(b, a)), z[a])
+            e.store("%zt", s.zt(k, ny + b), acc)
         following = []
         for a in range(nx):
             acc = e.load("%AB", s.AB(a, ny))
@@ -168,16 +178,9 @@ def _forward(e: Emitter, s: _Layout, tt: list[list[str]], rows: list[list[int]])
                 acc = e.multiply_add(acc, e.load("%AB", s.AB(a, b)), x[b] if b < nx else v[b - nx])
             following.append(acc)
         x = following
-        z.append([e.op("fmul", x[a], e.load("%D", s.D(a))) for a in range(nx)])
-    for k in range(T + 1):
-        for a, value in enumerate(z[k]):
-            e.store("%zt", s.zt(k, a), value)
-    for k in range(T):
-        for b in range(s.nlam):
-            acc = e.load("%M", s.M(b, ny))
-            for a in range(ny):
-                acc = e.multiply_add(acc, e.load("%M", s.M(b, a)), z[k][a])
-            e.store("%zt", s.zt(k, ny + b), acc)
+        z_x = [e.op("fmul", x[a], e.load("%D", s.D(a))) for a in range(nx)]
+    for a, value in enumerate(z_x):
+        e.store("%zt", s.zt(T, a), value)
 
 
 def _lists(start: np.ndarray, entries: np.ndarray) -> list[list[int]]:
