@@ -342,7 +342,7 @@ def run_cases(cases: Iterable[Case], directory: str | Path, jobs: int = 2,
                     note_reason(run.missing_reasons, result.reason or "no row returned")
                 bar.update(1)
         except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
-            report_stopped(stop, f"{len(run.rows)} runs", cell_dir)
+            report_stopped(stop, f"{len(run.rows)} runs", cell_dir, rerun)
             raise
         finally:
             bar.close()

@@ -202,7 +202,7 @@ def judge(row: Mapping[str, Any]) -> tuple[bool, str]:
         return False, f"{why}: {status[0] if status else ''}".strip().rstrip(":")
     tolerance = _number(row["tolerance"])
     reasons = []
-    paid, limit = _number(row.get("total_time")), _number(row.get("time_limit"))
+    paid, limit = _number(row.get(RANKED_TIME_COLUMN)), _number(row.get("time_limit"))
     if paid > limit:  # a failure is charged the limit: a success never costs more
         reasons.append(f"total_time {paid:.2e} s > time_limit {limit:.1e} s")
     for column in required_residuals(str(row["family"])):

@@ -32,7 +32,8 @@ MIN_PLANT_TIMESTEP = 1e-5
 """Smallest plant (MuJoCo) step, in s (the task's is 0.001): a closed-loop second takes
 ``1 / plant_timestep`` plant steps."""
 PERIOD_TOLERANCE = 1e-9
-"""Relative tolerance of ``dt`` being a whole number of plant steps (the plant's own)."""
+"""Relative tolerance of a period being a whole number of steps (:func:`whole_steps`: the
+config's control period, the plant's holds)."""
 
 
 def _is_number(value: Any) -> bool:

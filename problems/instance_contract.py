@@ -255,11 +255,14 @@ def check_real(key: str, array: np.ndarray) -> None:
 
 def _as_float(name: str, value: Any, ndim: int | None = None,
               shape: tuple[int, ...] | None = None) -> np.ndarray:
-    if np.iscomplexobj(value):
+    raw = np.asarray(value)
+    if raw.dtype.kind == "c":
         raise ValueError(f"{name} must be real, got complex values (nothing is cut to its "
                          "real part)")
+    if raw.dtype.kind not in REAL_KINDS + "O":  # text is refused, as the loaders refuse it
+        raise ValueError(f"{name} holds {raw.dtype} values, not real numbers")
     try:
-        array = np.asarray(value, dtype=np.float64)
+        array = np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError) as error:
         raise ValueError(f"{name} must be numeric: {error}") from error
     if ndim is not None and array.ndim != ndim:

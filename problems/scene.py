@@ -29,7 +29,7 @@ from typing import Literal
 import mujoco
 import numpy as np
 
-from c3bench.problems.config import Config, MPCConfig, SceneConfig, load_config
+from c3bench.problems.config import Config, MPCConfig, SceneConfig, load_config, whole_steps
 from c3bench.problems.errors import RenderUnavailable
 from c3bench.problems.limits import cube_limits
 from c3bench.problems.mpc import MPC
@@ -378,14 +378,14 @@ class Plant:
         return float(self.data.time)
 
     def _count(self, duration: float) -> int:
-        """Plant steps in ``duration`` seconds (a whole number of them, to 1e-9 relative)."""
+        """Plant steps in ``duration`` seconds (a whole number, at least one, of them:
+        :func:`~c3bench.problems.config.whole_steps`)."""
         if not (math.isfinite(duration) and duration > 0):
             raise ValueError(f"duration must be a finite number > 0, got {duration!r}")
         step = float(self.scene.model.opt.timestep)
-        count = round(duration / step)
-        if abs(count * step - duration) > 1e-9 * max(1.0, duration):
+        if not whole_steps(duration, step):
             raise ValueError(f"duration {duration} is not a multiple of the plant step {step}")
-        return count
+        return round(duration / step)
 
     def step(self, u: np.ndarray, duration: float,
              observe: Callable[[int], None] | None = None) -> np.ndarray:

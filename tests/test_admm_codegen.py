@@ -3,8 +3,8 @@ factorisation's backward step; compiled_passes_codegen.py, the linear passes): t
 step is bit for bit the numba lane loops' step (the readable kernel) on random structures,
 sizes, lane counts and precisions, failing pivots included; the whole compiled kernel with
 and without generated code (step and passes) gives the same bits on random batches of 1 to 40
-samples and on the cube's push; the disk cache and a failed compilation; the kernel arrays
-start on a cache line. No timing."""
+samples and on the cube's push; the disk cache and a failed compilation; the arrays the
+generated code reads start on a cache line. No timing."""
 
 from __future__ import annotations
 
@@ -202,7 +202,7 @@ def test_the_disk_cache_is_keyed_by_the_cpu(tmp_path: Any,
 
 @pytest.mark.parametrize("shape", [(7, 10, 10, 16), (10, 21, 16), (3,), (0, 4)])
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_kernel_arrays_start_on_a_cache_line(shape: tuple[int, ...], dtype: Any) -> None:
+def test_aligned_empty(shape: tuple[int, ...], dtype: Any) -> None:
     from c3bench.solvers.admm.compiled_factors import ALIGNMENT, aligned_empty
 
     for _ in range(5):
@@ -212,3 +212,16 @@ def test_kernel_arrays_start_on_a_cache_line(shape: tuple[int, ...], dtype: Any)
         assert np.all(array == 2.5)
         array[...] = 1.0  # writable, its own memory
         assert np.all(array == 1.0)
+
+
+@pytest.mark.parametrize("samples", [1, 5, 16])
+def test_arrays_the_generated_code_reads_start_on_a_cache_line(samples: int) -> None:
+    from c3bench.solvers.admm.compiled_factors import ALIGNMENT, CompiledFactors
+
+    factors = CompiledFactors.empty(2, samples, 5, 4, 3, np.dtype(np.float64))
+    for array in (factors.Y, factors.L, factors.Sd, factors.D, factors.ABd):
+        assert array.ctypes.data % ALIGNMENT == 0
+    mpc, lcs, x0 = random_lcs_problem(samples, 7)
+    solver = CompiledC3Plus(mpc, C3Options(keep_iterates=False, admm_iterations=3))
+    assert solver.solve(lcs, x0).ok
+    assert solver.kernel._arrays["Mt"].ctypes.data % ALIGNMENT == 0

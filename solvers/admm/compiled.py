@@ -348,12 +348,10 @@ class CompiledC3PlusKernel:
         shape = (n, nx, nlam, nu)
         if shape != self._shape:
             dt = self.dtype
-            self._arrays = {"A": aligned_empty((nx, nx, n), dt),
-                            "Bv": aligned_empty((nx, nv, n), dt),
-                            "d": aligned_empty((nx, n), dt),
-                            "Mc": aligned_empty((n, nlam, ny + 1), dt),
-                            "Mt": aligned_empty((nlam, ny + 1, n), dt),
-                            "MtM": aligned_empty((ny, ny, n), dt)}  # samples last but Mc
+            self._arrays = {"A": np.empty((nx, nx, n), dt), "Bv": np.empty((nx, nv, n), dt),
+                            "d": np.empty((nx, n), dt), "Mc": np.empty((n, nlam, ny + 1), dt),
+                            "Mt": aligned_empty((nlam, ny + 1, n), dt),  # the passes read it
+                            "MtM": np.empty((ny, ny, n), dt)}  # samples last but Mc
             self._shape = shape
             self._step_shape = (n, self.mpc.horizon, ny + nlam)
             self._planned = None

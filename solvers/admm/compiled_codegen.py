@@ -37,7 +37,8 @@ then run everything. A failure to generate or compile does the same and is recor
 ``CODEGEN.failures``. It never changes a result.
 
 Measured on the 2-core EPYC VM (znver4, load average below 1), seven backward steps, bit for
-bit equal to the lane loops:
+bit equal to the lane loops, with the step written product by product (before the
+column-by-column order of :mod:`.compiled_ir`):
 
 * 12 lanes (one sample's 10 rho values): 72 -> 34 us;
 * 32 lanes (16 samples, 2 rho values): 157 -> 60 us (eight-wide vectors on AVX-512).
@@ -65,9 +66,9 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from c3bench.solvers.admm.compiled_ir import FUNCTION, Emitter, step_ir
+from c3bench.solvers.admm.compiled_ir import FUNCTION, step_ir
 
-__all__ = ["CODEGEN", "ENV_SWITCH", "Emitter", "call_step", "call_through_address", "enabled",
+__all__ = ["CODEGEN", "ENV_SWITCH", "call_step", "call_through_address", "enabled",
            "generated", "step_ir", "step_table", "vector_width"]
 
 ENV_SWITCH = "C3BENCH_CODEGEN"

@@ -7,6 +7,7 @@ planned rho values are factorised together; :func:`rho_key` keys plans and cache
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -20,17 +21,19 @@ __all__ = ["ALIGNMENT", "CompiledFactors", "aligned_empty", "factor_failure", "p
            "rho_key"]
 
 ALIGNMENT = 64
-"""Bytes: the kernel's arrays start on a cache line (:func:`aligned_empty`)."""
+"""Bytes: the arrays the generated code reads start on a cache line (:func:`aligned_empty`)."""
 
 
 def aligned_empty(shape: tuple[int, ...], dtype: Any, fill: float | None = None) -> np.ndarray:
     """An array of ``shape`` whose data starts on a :data:`ALIGNMENT`-byte boundary (filled
-    with ``fill`` when given). numpy aligns to 16 bytes, so a four-lane vector (32 bytes) of a
-    16-byte-aligned array with 16 lanes per entry crosses a cache line every other load;
-    measured on the generated backward step (znver3, 16 lanes): all six arrays misaligned by
-    16 bytes 1.51 us per four lanes, aligned 1.19."""
+    with ``fill`` when given), for the arrays that numpy allocates and the generated code
+    (:mod:`.compiled_ir`, :mod:`.compiled_passes_codegen`) reads: numpy aligns to 16 bytes,
+    so with 16 lanes per entry every other four-lane (32-byte) load of such an array crosses
+    a cache line (numba's own arrays start on 32 bytes). Measured on the generated backward
+    step (znver3, 16 lanes): ``ABd`` on 16 bytes, as numpy had allocated it, 1.21 against
+    1.19 us per four lanes; all six of its arrays on 16 bytes 1.51."""
     dtype = np.dtype(dtype)
-    count = int(np.prod(shape, dtype=np.int64))
+    count = math.prod(shape)
     raw = np.empty(count * dtype.itemsize + ALIGNMENT, np.uint8)
     start = -int(raw.ctypes.data) % ALIGNMENT
     array: np.ndarray = raw[start:start + count * dtype.itemsize].view(dtype).reshape(shape)

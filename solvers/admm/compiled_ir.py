@@ -34,11 +34,12 @@ ICS 1988.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-__all__ = ["FUNCTION", "Emitter", "step_ir"]
+__all__ = ["FUNCTION", "Emitter", "lane_loop", "step_ir", "structure_lists"]
 
 FUNCTION = "c3bench_riccati_step"
 
@@ -47,12 +48,14 @@ class Emitter:
     """Straight-line IR of one chunk of ``width`` lanes (``width`` 1: scalars): numbered
     values, each input loaded once per pointer."""
 
-    def __init__(self, scalar: str, width: int) -> None:
-        self.scalar = scalar
-        self.vector = f"<{width} x {scalar}>" if width > 1 else scalar
+    def __init__(self, dtype: Any, width: int) -> None:
+        double = np.dtype(dtype) == np.float64
+        self.scalar = "double" if double else "float"
+        self.bits = 64 if double else 32
+        self.vector = f"<{width} x {self.scalar}>" if width > 1 else self.scalar
         self.width = width
         self.zero = "zeroinitializer" if width > 1 else "0.0"
-        self.one = splat(scalar, width, "1.0") if width > 1 else "1.0"
+        self.one = _splat(self.scalar, width, "1.0") if width > 1 else "1.0"
         self.lines: list[str] = []
         self.count = 0
         self.loaded: dict[tuple[str, int], str] = {}
@@ -71,7 +74,10 @@ class Emitter:
         """A copy of the pointer ``base`` that LLVM cannot see through (an empty inline
         assembly statement): loads through it are not merged with loads through ``base`` or
         through other copies, so a value loaded again is read from the cache, not kept in a
-        register across the code between."""
+        register across the code between. The statement captures ``base`` and may, for all
+        LLVM knows, read or write through it: it is also an ordering barrier for every access
+        through ``base`` and its copies (which is what keeps ``noalias`` true: loads through a
+        copy are ordered against the stores through ``base`` in program order)."""
         return self.emit(f'call ptr asm sideeffect "", "=r,0"(ptr {base})')
 
     def load(self, base: str, offset: int) -> str:
@@ -109,7 +115,7 @@ class Emitter:
                        self.op("fmul", left, right))
 
 
-def splat(scalar: str, width: int, value: str) -> str:
+def _splat(scalar: str, width: int, value: str) -> str:
     """The IR constant vector of ``width`` copies of ``value``."""
     return "<" + ", ".join([f"{scalar} {value}"] * width) + ">"
 
@@ -132,7 +138,7 @@ class _Step:
         column ``ny`` is ``S d``, stored."""
         e, nx, nv, lanes, columns = self.e, self.nx, self.nv, self.lanes, self.columns
         ny = nx + nv
-        S, AB, Hy = e.launder("%S"), e.launder("%AB"), e.launder("%Hy")
+        S, AB = e.launder("%S"), e.launder("%AB")
         SAB = []
         for a in range(nx):
             acc = e.zero
@@ -144,6 +150,7 @@ class _Step:
             for a in range(nx):
                 e.store("%Sd", a * lanes, SAB[a])
             return
+        Hy = e.launder("%Hy")
         for a in range(max(b - nx, 0), nv):
             acc = e.load(Hy, ((nx + a) * ny + b) * lanes)
             for c in columns[nx + a]:
@@ -160,8 +167,7 @@ class _Step:
         pivot is not positive records ``k`` in the failure vector ``failed`` (first failure
         only; the updated vector is returned) and continues on a unit pivot."""
         e, nx, L, inverse = self.e, self.nx, self.L, self.inverse
-        w, vector, one = e.width, e.vector, e.one
-        bits = 64 if e.scalar == "double" else 32
+        w, vector, one, bits = e.width, e.vector, e.one, e.bits
         for b in range(a + 1):
             sv = self.Qv[a, nx + b]
             for c in range(b):
@@ -171,7 +177,7 @@ class _Step:
                 continue
             positive = e.emit(f"fcmp ogt {vector} {sv}, zeroinitializer")
             first = e.emit(f"icmp slt <{w} x i64> {failed}, zeroinitializer")
-            fails = e.emit(f"xor <{w} x i1> {positive}, {splat('i1', w, 'true')}")
+            fails = e.emit(f"xor <{w} x i1> {positive}, {_splat('i1', w, 'true')}")
             record = e.emit(f"and <{w} x i1> {fails}, {first}")
             failed = e.emit(f"select <{w} x i1> {record}, <{w} x i64> {k}, <{w} x i64> {failed}")
             pivot = e.emit(f"select <{w} x i1> {positive}, {vector} {sv}, {vector} {one}")
@@ -225,6 +231,39 @@ class _Step:
                     e.store("%S", (b * nx + a) * lanes, acc)
 
 
+def structure_lists(start: np.ndarray, entries: np.ndarray) -> list[list[int]]:
+    """The compressed lists ``entries[start[b]:start[b + 1]]`` of a structure (its rows by
+    column, or columns by row) as Python lists."""
+    return [[int(c) for c in entries[start[b]:start[b + 1]]] for b in range(len(start) - 1)]
+
+
+def lane_loop(function: str, parameters: str, lane_arrays: Sequence[str], e: Emitter,
+              prologue: str = "", declarations: str = "", chunk: str = "") -> str:
+    """LLVM IR of ``void function(parameters, i64 %count)``: ``e``'s straight-line code run
+    for lanes ``0, width, ... < count``, with ``%name`` the lane's element of each
+    ``%name0`` of ``lane_arrays`` (``chunk``: more per-lane lines; ``prologue``: lines of
+    the entry block; ``declarations``: before the function)."""
+    pointers = "\n".join(f"  %{name} = getelementptr inbounds {e.scalar}, ptr %{name}0, i64 %lane"
+                         for name in lane_arrays)
+    body = "\n".join(e.lines)
+    return f"""{declarations}
+define void @{function}({parameters}, i64 %count) {{
+entry:
+{prologue}  %empty = icmp sle i64 %count, 0
+  br i1 %empty, label %exit, label %chunk
+chunk:
+  %lane = phi i64 [0, %entry], [%next, %chunk]
+{pointers}
+{chunk}{body}
+  %next = add i64 %lane, {e.width}
+  %more = icmp slt i64 %next, %count
+  br i1 %more, label %chunk, label %exit
+exit:
+  ret void
+}}
+"""
+
+
 def step_ir(nx: int, nv: int, column_start: np.ndarray, column_rows: np.ndarray, lanes: int,
             dtype: Any, width: int) -> str:
     """LLVM IR of ``void c3bench_riccati_step(S, ABd, Hy, Y, L, Sd, fb, k, count)``: the
@@ -234,34 +273,12 @@ def step_ir(nx: int, nv: int, column_start: np.ndarray, column_rows: np.ndarray,
     ``Sd`` (nx,), lanes last, C order; ``fb`` (count,) int64), over the structural nonzeros
     ``column_start``, ``column_rows`` of ``[A B_v d]``, in the order of the module
     docstring."""
-    scalar = "double" if np.dtype(dtype) == np.float64 else "float"
-    e = Emitter(scalar, width)
-    columns = [[int(c) for c in column_rows[column_start[b]:column_start[b + 1]]]
-               for b in range(len(column_start) - 1)]
-    step = _Step(e, nx, nv, columns, lanes)
+    e = Emitter(dtype, width)
+    step = _Step(e, nx, nv, structure_lists(column_start, column_rows), lanes)
     step.products_and_cholesky()
     step.update()
-    bits = 64 if scalar == "double" else 32
-    vector = e.vector
     arrays = ("S", "AB", "Hy", "Y", "L", "Sd")
-    chunk = "\n".join(f"  %{name} = getelementptr inbounds {scalar}, ptr %{name}0, i64 %lane"
-                      for name in arrays)
     parameters = ", ".join(f"ptr noalias %{name}0" for name in arrays)
-    return f"""declare {vector} @llvm.sqrt.v{width}f{bits}({vector})
-
-define void @{FUNCTION}({parameters}, ptr noalias %fb0, i64 %k, i64 %count) {{
-entry:
-  %empty = icmp sle i64 %count, 0
-  br i1 %empty, label %exit, label %chunk
-chunk:
-  %lane = phi i64 [0, %entry], [%next, %chunk]
-{chunk}
-  %fb = getelementptr inbounds i64, ptr %fb0, i64 %lane
-{chr(10).join(e.lines)}
-  %next = add i64 %lane, {width}
-  %more = icmp slt i64 %next, %count
-  br i1 %more, label %chunk, label %exit
-exit:
-  ret void
-}}
-"""
+    return lane_loop(FUNCTION, f"{parameters}, ptr noalias %fb0, i64 %k", arrays, e,
+                     declarations=f"declare {e.vector} @llvm.sqrt.v{width}f{e.bits}({e.vector})\n",
+                     chunk="  %fb = getelementptr inbounds i64, ptr %fb0, i64 %lane\n")

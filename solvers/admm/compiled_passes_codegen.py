@@ -6,7 +6,7 @@ gradient of the QP step, the backward and forward passes of the Riccati recursio
 :data:`~c3bench.solvers.admm.compiled_passes.LANE_SOLVE` samples on, a sample at a time
 below). Those loops are the readable kernel. This module writes the same arithmetic out for
 one structure of ``[A B_v d]``, horizon, batch size, factor lane stride and precision as LLVM
-IR, the way :mod:`.compiled_codegen` does for the factorisation's backward step:
+IR, the way :mod:`.compiled_ir` does for the factorisation's backward step:
 
 * every product unrolled over its structural nonzeros and every time step unrolled;
 * the samples worked ``width`` at a time as LLVM vectors (``width`` 1: scalar code);
@@ -27,7 +27,7 @@ terminal state.
 
 References: as :mod:`c3bench.solvers.admm.compiled_passes` (the Riccati recursion's linear
 passes, Rawlings, Mayne & Diehl, *Model Predictive Control*, 2nd ed., section 1.3.3) and
-:mod:`.compiled_codegen` (generated straight-line code).
+:mod:`.compiled_ir` (generated straight-line code).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from numba import types
 from numba.extending import intrinsic
 
 from c3bench.solvers.admm.compiled_codegen import call_through_address, generated, vector_width
-from c3bench.solvers.admm.compiled_ir import Emitter
+from c3bench.solvers.admm.compiled_ir import Emitter, lane_loop, structure_lists
 
 __all__ = ["FUNCTION", "call_passes", "passes_address", "passes_ir"]
 
@@ -149,7 +149,7 @@ def _forward(e: Emitter, s: _Layout, tt: list[list[str]], rows: list[list[int]])
     nx, nv, ny, T = s.nx, s.nv, s.ny, s.T
     x0 = [e.broadcast("%vec", a) for a in range(nx)]
     x = [e.op("fdiv", x0[a], e.load("%D", s.D(a))) for a in range(nx)]
-    z_x = list(x0)
+    z_x = x0
     for k in range(T):
         r = []
         for a in range(nv):
@@ -183,44 +183,22 @@ def _forward(e: Emitter, s: _Layout, tt: list[list[str]], rows: list[list[int]])
         e.store("%zt", s.zt(T, a), value)
 
 
-def _lists(start: np.ndarray, entries: np.ndarray) -> list[list[int]]:
-    return [[int(c) for c in entries[start[b]:start[b + 1]]] for b in range(len(start) - 1)]
-
-
 def passes_ir(nx: int, nv: int, nlam: int, T: int, column_start: np.ndarray,
               column_rows: np.ndarray, row_start: np.ndarray, row_columns: np.ndarray,
               samples: int, factor_lanes: int, dtype: Any, width: int) -> str:
     """LLVM IR of ``void c3bench_linear_passes(delta, w, M, consts, vectors, Y, L, Sd, D, ABd,
     zt, count)`` for samples ``0 .. count`` (a multiple of ``width``; module docstring)."""
-    scalar = "double" if np.dtype(dtype) == np.float64 else "float"
-    e = Emitter(scalar, width)
+    e = Emitter(dtype, width)
     s = _Layout(nx, nv, nlam, T, samples, factor_lanes)
     gy = [_gradient(e, s, k) for k in range(T)]
-    tt = _backward(e, s, gy, _lists(column_start, column_rows))
-    _forward(e, s, tt, _lists(row_start, row_columns))
-    lane_arrays = ("delta", "w", "M", "zt", "Y", "L", "Sd", "D", "AB")
+    tt = _backward(e, s, gy, structure_lists(column_start, column_rows))
+    _forward(e, s, tt, structure_lists(row_start, row_columns))
     parameters = ", ".join(f"ptr noalias %{name}0" for name in
                            ("delta", "w", "M", "c", "vec", "Y", "L", "Sd", "D", "AB", "zt"))
-    chunk = "\n".join(f"  %{name} = getelementptr inbounds {scalar}, ptr %{name}0, i64 %lane"
-                      for name in lane_arrays)
-    body = "\n".join(e.lines)
-    return f"""define void @{FUNCTION}({parameters}, i64 %count) {{
-entry:
-  %c = getelementptr inbounds {scalar}, ptr %c0, i64 0
-  %vec = getelementptr inbounds {scalar}, ptr %vec0, i64 0
-  %empty = icmp sle i64 %count, 0
-  br i1 %empty, label %exit, label %chunk
-chunk:
-  %lane = phi i64 [0, %entry], [%next, %chunk]
-{chunk}
-{body}
-  %next = add i64 %lane, {width}
-  %more = icmp slt i64 %next, %count
-  br i1 %more, label %chunk, label %exit
-exit:
-  ret void
-}}
-"""
+    prologue = (f"  %c = getelementptr inbounds {e.scalar}, ptr %c0, i64 0\n"
+                f"  %vec = getelementptr inbounds {e.scalar}, ptr %vec0, i64 0\n")
+    return lane_loop(FUNCTION, parameters, ("delta", "w", "M", "zt", "Y", "L", "Sd", "D", "AB"),
+                     e, prologue=prologue)
 
 
 def passes_address(nx: int, nv: int, nlam: int, T: int, pattern: Any, samples: int,
