@@ -373,7 +373,7 @@ def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.n
     n, nx, nu = B.shape
     nlam = D.shape[2]  # the LCS's D (n, nx, nlam)
     ny = nx + nlam + nu
-    M, product = np.empty((nlam, ny, n)), np.empty((ny, ny, n))
+    M, acc = np.empty((nlam, ny, n)), np.empty(n)
     for a in range(nx):  # samples last; every innermost loop writes consecutive samples
         for b in range(nx):
             for j in range(n):
@@ -423,14 +423,14 @@ def assemble(A: np.ndarray, B: np.ndarray, D: np.ndarray, d: np.ndarray, E: np.n
         for b in range(nu):
             for j in range(n):
                 M[r, nx + nlam + b, j] = H[j, r, b]
-    product[:, :, :] = 0.0  # M^T M, every sample at once: each entry's sum in r order
-    for r in range(nlam):
-        for a in range(ny):
-            for b in range(a, ny):
-                for j in range(n):
-                    product[a, b, j] += M[r, a, j] * M[r, b, j]
-    for a in range(ny):
-        for b in range(a, ny):
-            for j in range(n):
-                MtM[a, b, j] = product[a, b, j]
-                MtM[b, a, j] = product[a, b, j]
+    lanes = np.uint64(n)  # unsigned lane indices: numba adds no negative-index wraparound
+    for a in range(ny):  # M^T M, every sample at once: each entry's sum in r order from +0.0,
+        for b in range(a, ny):  # in a row of n accumulators that stays in the L1 cache
+            for j in range(lanes):
+                acc[j] = 0.0
+            for r in range(nlam):
+                for j in range(lanes):
+                    acc[j] += M[r, a, j] * M[r, b, j]
+            for j in range(lanes):
+                MtM[a, b, j] = acc[j]
+                MtM[b, a, j] = acc[j]
