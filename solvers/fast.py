@@ -349,7 +349,8 @@ class FastC3Plus:
 
     def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
               delta: np.ndarray | None = None, w: np.ndarray | None = None,
-              fallback_input: np.ndarray | None = None) -> FastSolution:
+              fallback_input: np.ndarray | None = None, trusted_iterates: bool = False
+              ) -> FastSolution:
         """One control step of the one ADMM (:func:`c3bench.solvers.admm.solve_batched`).
 
         Parameters
@@ -364,9 +365,13 @@ class FastC3Plus:
             Initial iterates (n, T, ns) or (T, ns); cold start when ``None``.
         fallback_input
             Returned with ``ok=False`` when the step fails (zero when ``None``).
+        trusted_iterates
+            ``delta`` and ``w`` are a controller's own warm start, used unchecked
+            (:func:`c3bench.solvers.admm.loop.initial_iterates`).
         """
         return solve_batched(self, lcs, self.mpc, x0, self.options, weights, delta, w,
-                             fallback_input, self.shared_inputs, self.record_residuals)
+                             fallback_input, self.shared_inputs, self.record_residuals,
+                             trusted_iterates)
 
 
 def fast_options(**changes: Any) -> C3Options:

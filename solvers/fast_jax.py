@@ -490,10 +490,13 @@ class JaxC3Plus:
 
     def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
               delta: np.ndarray | None = None, w: np.ndarray | None = None,
-              fallback_input: np.ndarray | None = None) -> FastSolution:
-        """One control step of the one ADMM on the device (returns numpy arrays)."""
+              fallback_input: np.ndarray | None = None, trusted_iterates: bool = False
+              ) -> FastSolution:
+        """One control step of the one ADMM on the device (returns numpy arrays;
+        ``trusted_iterates`` as :meth:`c3bench.solvers.fast.FastC3Plus.solve`)."""
         solution = solve_batched(self, lcs, self.mpc, x0, self.options, weights, delta, w,
-                                 fallback_input, self.shared_inputs, record_residuals=False)
+                                 fallback_input, self.shared_inputs, record_residuals=False,
+                                 trusted_iterates=trusted_iterates)
         solution.delta, solution.w = np.asarray(solution.delta), np.asarray(solution.w)
         if solution.z_steps is not None and solution.z_terminal is not None:
             solution.z_steps = np.asarray(solution.z_steps)

@@ -68,3 +68,64 @@ def test_qp_settings_take_a_profile_name_and_refuse_anything_else() -> None:
         C3Options(qp_settings="bogus")
     with pytest.raises(ValueError, match="projection_settings must be a Settings"):
         C3Options(projection_settings=3)  # type: ignore[arg-type]
+
+
+# --- sample weights and warm starts ------------------------------------------------------------
+def test_weights_are_floored_relative_to_the_largest_and_sum_to_one() -> None:
+    """``p_j = max(a_j, f max a) / sum_i max(a_i, f max a)``, checked in exact rational
+    arithmetic; scaling every weight changes nothing; ``None`` is uniform."""
+    from fractions import Fraction
+
+    from c3bench.solvers.admm.loop import normalise_weights
+
+    rng = np.random.default_rng(4)
+    for trial in range(20):
+        raw = rng.random(int(rng.integers(1, 40))) ** 8  # many far below the largest
+        raw[rng.random(raw.size) < 0.2] = 0.0
+        raw[int(rng.integers(raw.size))] = 1.0 + trial
+        floor = 1e-3
+        p = normalise_weights(raw.tolist(), raw.size, floor)
+        bound = Fraction(floor) * Fraction(float(raw.max()))
+        floored = [max(Fraction(float(a)), bound) for a in raw]
+        exact = [float(value / sum(floored)) for value in floored]
+        np.testing.assert_allclose(p, exact, rtol=1e-14, atol=0)  # the sum: n roundings
+        assert abs(p.sum() - 1) < 1e-14 and p.min() >= floor * p.max() * (1 - 1e-15)
+        np.testing.assert_allclose(normalise_weights(raw * 1e-7, raw.size, floor), p,
+                                   rtol=1e-14)
+    np.testing.assert_array_equal(normalise_weights(None, 4), np.full(4, 0.25))
+
+
+@pytest.mark.parametrize("weights", [[1.0, -0.5], [1.0, np.nan], [1.0, np.inf], [0.0, 0.0],
+                                     [1.0, 2.0, 3.0], ["a", "b"]])
+def test_bad_weights_are_one_input_error(weights: list[object]) -> None:
+    from c3bench.solvers.admm.loop import normalise_weights
+
+    with pytest.raises(InputError, match="weights"):
+        normalise_weights(weights, 2)
+
+
+def test_a_controllers_own_warm_start_is_used_as_it_is_and_gives_the_checked_answer() -> None:
+    """The controller hands its shifted iterates over unchecked (``trusted_iterates``); the
+    same arrays handed over by a caller are checked, and the step is the same."""
+    from c3bench.solvers.admm.loop import initial_iterates
+    from c3bench.solvers.fast import FastC3PlusController
+
+    mpc, batch, x0 = random_lcs_problem(3, seed=5)
+    options = C3Options(keep_iterates=False)
+    for solver in (FastC3Plus(mpc, options), CompiledC3Plus(mpc, options)):
+        controller = FastC3PlusController(solver)
+        controller.step(batch, x0)
+        delta, w = controller.warm(controller.delta.shape)
+        assert delta is not None and w is not None
+        layout = solver.layout
+        given = initial_iterates(layout, x0, 3, delta, w, solver.dtype, trusted=True)
+        assert given[0] is delta and given[1] is w
+        checked = solver.solve(batch, x0, None, delta, w)
+        warm = controller.step(batch, x0)
+        assert warm.ok and checked.ok
+        np.testing.assert_array_equal(warm.u, checked.u)
+        np.testing.assert_array_equal(warm.delta, checked.delta)
+        bad = delta.copy()
+        bad[0, 0, 0] = np.nan
+        with pytest.raises(InputError, match="delta has non-finite entries"):
+            solver.solve(batch, x0, None, bad, w)

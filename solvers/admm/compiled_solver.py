@@ -149,10 +149,13 @@ class CompiledC3Plus:
 
     def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
               delta: np.ndarray | None = None, w: np.ndarray | None = None,
-              fallback_input: np.ndarray | None = None) -> C3Solution:
-        """One control step of the one ADMM (:func:`c3bench.solvers.admm.solve_batched`)."""
+              fallback_input: np.ndarray | None = None, trusted_iterates: bool = False
+              ) -> C3Solution:
+        """One control step of the one ADMM (:func:`c3bench.solvers.admm.solve_batched`;
+        ``trusted_iterates`` as :meth:`c3bench.solvers.fast.FastC3Plus.solve`)."""
         return solve_batched(self, lcs, self.mpc, x0, self.options, weights, delta, w,
-                             fallback_input, self.shared_inputs, self.record_residuals)
+                             fallback_input, self.shared_inputs, self.record_residuals,
+                             trusted_iterates)
 
 
 def warm_up() -> float:

@@ -109,15 +109,19 @@ def solve_robust(lcs_samples: Sequence[LCS], weights: Sequence[float] | np.ndarr
 def solve_batched(kernel: Any, lcs: LCSBatch, mpc: MPC, x0: np.ndarray, options: C3Options,
                   weights: Sequence[float] | None = None, delta: np.ndarray | None = None,
                   w: np.ndarray | None = None, fallback_input: np.ndarray | None = None,
-                  shared_inputs: bool = True, record_residuals: bool = False) -> C3Solution:
-    """One control step of a batched kernel (numpy Riccati, compiled, JAX) on ``lcs``."""
+                  shared_inputs: bool = True, record_residuals: bool = False,
+                  trusted_iterates: bool = False) -> C3Solution:
+    """One control step of a batched kernel (numpy Riccati, compiled, JAX) on ``lcs``
+    (``trusted_iterates``: ``delta`` and ``w`` are a controller's own warm start,
+    :func:`.loop.initial_iterates`)."""
     n = lcs.n_samples
     x0 = check_sizes(lcs.nx, lcs.nlam, lcs.nu, x0)
     fallback = np.zeros(lcs.nu) if fallback_input is None else np.asarray(fallback_input,
                                                                           dtype=float)
     p = normalise_weights(weights, n)
     kernel.bind(lcs)
-    delta_init, w_init = initial_iterates(kernel.layout, x0, n, delta, w, kernel.dtype)
+    delta_init, w_init = initial_iterates(kernel.layout, x0, n, delta, w, kernel.dtype,
+                                          trusted_iterates)
     inputs = StepInputs(x0, p, shared_inputs)
     return run_admm(kernel, options, inputs, delta_init, w_init, fallback,
                     float(mpc.force_limit), record_residuals)
@@ -191,7 +195,8 @@ class BatchedSolver(Protocol):
 
     def solve(self, lcs: LCSBatch, x0: np.ndarray, weights: Sequence[float] | None = None,
               delta: np.ndarray | None = None, w: np.ndarray | None = None,
-              fallback_input: np.ndarray | None = None) -> C3Solution: ...
+              fallback_input: np.ndarray | None = None, trusted_iterates: bool = False
+              ) -> C3Solution: ...
 
 
 class FastC3PlusController(WarmStartController):
@@ -206,4 +211,6 @@ class FastC3PlusController(WarmStartController):
         """One control step on the LCS batch."""
         shape = None if self.delta is None else (lcs.n_samples, *self.delta.shape[1:])
         delta, w = self.warm(shape) if shape is not None else (None, None)
-        return self.record(self.solver.solve(lcs, x0, weights, delta, w, self.last_safe_input))
+        # the shifted iterates of this solver's last successful step: used unchecked
+        return self.record(self.solver.solve(lcs, x0, weights, delta, w, self.last_safe_input,
+                                             trusted_iterates=delta is not None))

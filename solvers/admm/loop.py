@@ -73,11 +73,12 @@ def weighted_norm(values: np.ndarray, p: np.ndarray) -> float:
 
 
 def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -> np.ndarray:
-    """Sample weights scaled to sum 1, floored at ``floor`` times the largest (uniform if None).
+    """Sample weights floored at ``floor`` times the largest and scaled to sum 1 (uniform if
+    None): ``p_j = max(a_j, f max_k a_k) / sum_i max(a_i, f max_k a_k)``.
 
-    The floor keeps every sample's QP well posed (a zero weight would remove its cost).
-    Weights of the wrong shape, negative, non-finite or all zero raise :class:`InputError`
-    (a ``ValueError``), one line.
+    The floor keeps every sample's QP well posed (a zero weight would remove its cost); it is
+    relative, so scaling every weight leaves ``p`` unchanged. Weights of the wrong shape,
+    negative, non-finite or all zero raise :class:`InputError` (a ``ValueError``), one line.
     """
     if weights is None:
         return np.full(samples, 1.0 / samples)
@@ -87,16 +88,13 @@ def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -
         raise InputError(f"weights must be numbers: {error}") from None
     if array.shape != (samples,):
         raise InputError(f"weights must have shape ({samples},), got {array.shape}")
-    # the ufuncs' reductions directly (what ndarray.sum/min/max call, without their Python
+    # the ufuncs' reductions directly (what ndarray.min/max call, without their Python
     # wrappers: this runs every control step)
-    total = np.add.reduce(array)
     lowest, largest = np.minimum.reduce(array), np.maximum.reduce(array)
-    if not (lowest >= 0 and largest < math.inf and total > 0):  # a NaN fails lowest >= 0
+    if not (lowest >= 0 and 0 < largest < math.inf):  # a NaN fails lowest >= 0
         raise InputError("weights must be finite, >= 0 and not all zero")
-    array = array / total
-    # max(a / total) = max(a) / total exactly: rounding a division is monotone
-    array = np.maximum(array, floor * (largest / total))
-    normalised: np.ndarray = array / np.add.reduce(array)
+    floored = np.maximum(array, floor * largest)
+    normalised: np.ndarray = floored / np.add.reduce(floored)
     return normalised
 
 
@@ -109,13 +107,18 @@ def cold_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
 
 
 def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
-                     delta: np.ndarray | None, w: np.ndarray | None, dtype: Any = np.float64
-                     ) -> tuple[np.ndarray, np.ndarray]:
+                     delta: np.ndarray | None, w: np.ndarray | None, dtype: Any = np.float64,
+                     trusted: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The given iterates ((S, T, ns) or (T, ns), checked) or a cold start.
 
     A given array of the full shape and ``dtype`` is used as it is, not copied: no kernel and
     nothing in the loop writes into its iterates (every update makes new arrays), and a
-    warm-started controller hands over arrays it has just made (:func:`shift_in_time`)."""
+    warm-started controller hands over arrays it has just made (:func:`shift_in_time`).
+    ``trusted``: ``delta`` and ``w`` are such a controller's own warm start, made from the
+    iterates of a successful step of the same kernel (of the full shape and ``dtype``, and
+    finite: every kernel fails a step whose iterates are not), so they are used unchecked."""
+    if trusted and delta is not None and w is not None:
+        return delta, w
     shape = (samples, layout.horizon, layout.step_size)
     cold: tuple[np.ndarray, np.ndarray] | None = None
     if delta is None or w is None:  # a warm start (both given) builds no cold arrays
