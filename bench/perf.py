@@ -70,9 +70,17 @@ configuration at a sample count too. ``repeats`` is the number of timed rounds, 
 rounds (default 1) that are not recorded. A progress bar (stderr) counts the steps of each
 sample count.
 
+**One process per configuration** (:mod:`bench.perf_workers`): each configuration is
+prepared and stepped in a worker process of its own, forked from the run's process and driven
+block by block, so that only one process computes at a time and no backend is timed in an
+interpreter that another backend's runtime has changed (measured: the compiled ADMM 9 % slower,
+its Python 50 %, when the JAX backend stepped in the same process; no change from another
+process); ``--same-process`` measures all in the run's process. A lost worker is an
+infrastructure failure: its configuration gets no row.
+
 Warm-up rounds are excluded; BLAS is pinned to one thread (threadpoolctl)
-during every measurement and the count is recorded; ``--cpu N`` pins the whole process to
-core ``N``.
+during every measurement and the count is recorded; ``--cpu N`` pins the whole process (and
+its workers) to core ``N``.
 
 **Files** (written atomically under ``<results>/perf/`` by :func:`bench.perf_store.write_perf`;
 every run is kept): ``runs/<run_id>.parquet``, one row per timed control step of that run
@@ -88,7 +96,6 @@ import gc
 import math
 import os
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -106,7 +113,6 @@ from c3bench.bench.perf_backends import (
     BackendUnavailable,
     Configuration,
     PerfContext,
-    PreparedBackend,
     backend_spec,
     precisions_of,
     sample_sides,
@@ -121,6 +127,14 @@ from c3bench.bench.perf_flops import (
 )
 from c3bench.bench.perf_store import CacheState
 from c3bench.bench.perf_summary import format_line, format_ms, format_summary_line, summarize
+from c3bench.bench.perf_workers import (
+    BackendFailure,
+    InProcessBackend,
+    StepRecord,
+    WorkerBackend,
+    WorkerLost,
+    start_backend,
+)
 from c3bench.bench.progress import progress_bar
 from c3bench.problems.errors import InputError
 from c3bench.problems.names import Precision
@@ -167,6 +181,9 @@ class PerfSettings:
     cpu: int | None = None
     weighting: bool = True
     """LCP-error sample weighting in every step with ``n > 1`` samples."""
+    isolated: bool = True
+    """Each configuration in its own worker process (:mod:`bench.perf_workers`); ``False``:
+    all in the run's process (``--same-process``)."""
 
     def __post_init__(self) -> None:
         self.samples = tuple(int(n) for n in self.samples)
@@ -272,46 +289,56 @@ class _Measurement:
     """One configuration being timed: its backend, how many steps it takes, its rows."""
 
     config: Configuration
-    prepared: PreparedBackend
+    backend: WorkerBackend | InProcessBackend
     repeats: int
     """Timed rounds (:data:`STEPS_PER_ROUND` steps each: the first cold, the others warm)."""
     note: str
-    failure_prefix: str
-    """Start of the skipped row's note when a step raises (:class:`BackendSpec` ``failure``)."""
     rows: list[dict[str, Any]] = field(default_factory=list)
     failure: str | None = None
     """Why it stopped (the skipped row's note), or ``None``."""
+    lost: str | None = None
+    """Why its worker process was lost (no row is stored), or ``None``."""
 
 
-def _time_step(run: _Run, m: _Measurement, step: int, cache: CacheState, load: float,
-               threads: int) -> None:
-    """Run step ``step`` of ``m``'s sequence (recorded from the first timed round on, with its
+def _record_step(run: _Run, m: _Measurement, step: int, record: StepRecord, cache: CacheState,
+                 load: float, threads: int) -> None:
+    """The row of step ``step`` of ``m``'s sequence (from the first timed round on, with its
     ``cache`` state)."""
     context = run.context
-    index, x, u_prev = context.states[step % len(context.states)]
-    wall, cpu = time.perf_counter(), time.process_time()
-    parts = m.prepared.step(index, x, u_prev)
-    cpu = time.process_time() - cpu
-    wall = time.perf_counter() - wall
     if step < STEPS_PER_ROUND * context.warmup:
         return
-    total = 1e3 * wall
+    index = context.states[step % len(context.states)][0]
+    parts = record.parts
+    total = 1e3 * record.wall
     lcs, weighting, qp, proj = (1e3 * value for value in (
         parts.lcs, parts.weighting, parts.qp, parts.proj))
     known = lcs + weighting + qp + (0.0 if math.isnan(proj) else proj)
     iterations = parts.iterations if parts.iterations >= 0 else context.iterations
-    model = _mflop(run, m.config, iterations) if m.prepared.flop_model else math.nan
-    executed = model if m.prepared.executed_flops is None else \
-        m.prepared.executed_flops() / 1e6
+    model = _mflop(run, m.config, iterations) if m.backend.traits.flop_model else math.nan
+    executed = model if record.executed_mflop is None else record.executed_mflop
     m.rows.append(_row(
         run, m.config, repeat=step - STEPS_PER_ROUND * context.warmup, state_index=index,
         total_ms=total, lcs_ms=lcs, qp_ms=qp, proj_ms=proj,
-        overhead_ms=max(total - known, 0.0), cpu_ms=1e3 * cpu, iterations=iterations,
+        overhead_ms=max(total - known, 0.0), cpu_ms=1e3 * record.cpu, iterations=iterations,
         ok=parts.ok, cache_hits=parts.cache_hits, cache_misses=parts.cache_misses,
         note=m.note, blas_threads=threads, load_avg=load, weighted=parts.weighted,
         weighting_ms=weighting, admm_ms=1e3 * parts.admm,
         total_no_weighting_ms=total - weighting, admm_mflop=model,
         admm_mflop_executed=executed, cache=str(cache)))
+
+
+def _time_block(run: _Run, m: _Measurement, r: int, load: float, threads: int) -> None:
+    """Round ``r``'s block of ``m`` (:data:`STEPS_PER_ROUND` steps; the first cold), its rows
+    kept; a step that raises stops ``m`` (``failure``), a lost worker too (``lost``)."""
+    first = STEPS_PER_ROUND * r
+    try:
+        records = m.backend.run_block(first, STEPS_PER_ROUND)
+    except BackendFailure as failure:
+        records, m.failure = failure.records, str(failure)
+    except WorkerLost as error:
+        records, m.lost = [], str(error)
+    for offset, record in enumerate(records):
+        _record_step(run, m, first + offset, record, BLOCK_STATES[offset], load, threads)
 
 
 def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: bool = False
@@ -321,8 +348,8 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
     (module docstring), so that a slow phase of a shared machine falls on every backend alike
     and each configuration has a cold and a warm step per round; each timed round starts with
     a sample of the matmul rate (:class:`bench.perf_flops.MatmulProbe`), stored in every row
-    as the median over the rounds. A backend that raises stops (its ``failure`` says why);
-    the others go on."""
+    as the median over the rounds. A backend that raises stops (its ``failure`` says why), a
+    configuration whose worker is lost too (``lost``); the others go on."""
     from c3bench.solvers.timing import blas_threads, single_thread_blas
 
     warmup = run.context.warmup
@@ -338,22 +365,19 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
             if r >= warmup:
                 probe.sample()
             for m in measurements:
-                if m.failure is not None or r >= warmup + m.repeats:
-                    continue
-                for offset, cache in enumerate(BLOCK_STATES):
-                    bar.update(1)
-                    try:
-                        _time_step(run, m, STEPS_PER_ROUND * r + offset, cache, load, threads)
-                    except BackendUnavailable as error:
-                        m.failure = str(error)
-                        break
-                    except Exception as error:  # noqa: BLE001 (a backend that raises: skipped)
-                        m.failure = f"{m.failure_prefix}: {type(error).__name__}: {error}"
-                        break
+                if m.failure is None and m.lost is None and r < warmup + m.repeats:
+                    _time_block(run, m, r, load, threads)
+                    bar.update(STEPS_PER_ROUND)
     bar.close()
     rates = probe.rates()
     for m in measurements:
-        compile_seconds = m.prepared.compile_seconds()
+        if m.failure is not None or m.lost is not None:
+            continue
+        try:
+            compile_seconds = m.backend.compile_seconds()
+        except WorkerLost as error:
+            m.lost = str(error)
+            continue
         for row in m.rows:
             row.update(compile_s=compile_seconds, matmul_run_gflops_f64=rates.float64,
                        matmul_run_gflops_f32=rates.float32)
@@ -437,28 +461,43 @@ def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
     rows: list[dict[str, Any]] = []
 
     def skip(config: Configuration, note: str) -> None:
-        say(f"{config.backend:<15} {config.precision:<8} {config.device:<4} "
-            f"samples={config.samples:<5} skipped: {note}")
+        say(f"{_label(config)} skipped: {note}")
         rows.append(_row(run, config, skipped=True, note=note, load_avg=load_average()))
 
     measurements: list[_Measurement] = []
-    for config in group:
-        spec = backend_spec(config.backend)
-        assert spec is not None  # checked by PerfSettings
-        try:
-            prepared = spec.make(run.context, config)
-        except BackendUnavailable as error:
-            skip(config, str(error))
-            continue
-        repeats, note = settings.repeats, ""
-        if prepared.repeats is not None and prepared.repeats < settings.repeats:
-            repeats, note = prepared.repeats, \
-                f"rounds cut to {prepared.repeats} ({prepared.note})"
-        measurements.append(_Measurement(config, prepared, repeats, note, spec.failure))
-    _measure_interleaved(run, measurements, progress)
+    try:
+        for config in group:
+            spec = backend_spec(config.backend)
+            assert spec is not None  # checked by PerfSettings
+            try:
+                backend = start_backend(spec, run.context, config, settings.isolated,
+                                        [m.backend for m in measurements])
+            except BackendUnavailable as error:
+                skip(config, str(error))
+                continue
+            except WorkerLost as error:
+                say(f"{_label(config)} not measured: {error} (nothing stored)")
+                continue
+            repeats, note = settings.repeats, ""
+            cut = backend.traits.repeats
+            if cut is not None and cut < settings.repeats:
+                repeats, note = cut, f"rounds cut to {cut} ({backend.traits.note})"
+            measurements.append(_Measurement(config, backend, repeats, note))
+        _measure_interleaved(run, measurements, progress)
+    finally:
+        for m in measurements:
+            m.backend.close()
     for m in measurements:
-        if m.failure is None:
+        if m.lost is not None:
+            say(f"{_label(m.config)} not measured: {m.lost} (nothing stored)")
+        elif m.failure is None:
             rows.extend(m.rows)
         else:
             skip(m.config, m.failure)
     return rows
+
+
+def _label(config: Configuration) -> str:
+    """The configuration as the run's lines start."""
+    return (f"{config.backend:<15} {config.precision:<8} {config.device:<4} "
+            f"samples={config.samples:<5}")

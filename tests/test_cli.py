@@ -160,6 +160,14 @@ def test_list_forms_parse_equal(command: list[str], option: str, values: list[st
         == expected
 
 
+def test_perf_runs_each_backend_in_its_own_process_unless_told() -> None:
+    from c3bench.bench.perf import PerfSettings
+
+    parser = build_parser()
+    assert parser.parse_args(["perf"]).isolated is PerfSettings().isolated is True
+    assert parser.parse_args(["perf", "--same-process"]).isolated is False
+
+
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--version"]) == 0
     assert capsys.readouterr().out == f"c3bench {__version__}\n"

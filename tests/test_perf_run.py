@@ -4,8 +4,11 @@ checked)."""
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
+import os
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -98,46 +101,88 @@ def test_any_qp_backend_can_sit_inside_the_reference_controller() -> None:
         PerfSettings(backends=("c3-nope",))
 
 
+def _log_factory(log: Path, name: str, fail_at: int | None = None,
+                 exit_at: int | None = None) -> Any:
+    """A fake backend factory whose steps append ``name samples pid`` to ``log`` (the steps
+    may run in a worker process), raise from step ``fail_at + 1`` on, or end the process at
+    step ``exit_at + 1``."""
+    from c3bench.bench.perf_backends import PreparedBackend, StepParts
+
+    def make(context: Any, config: Configuration) -> PreparedBackend:
+        count = [0]
+
+        def step(index: int, x: np.ndarray, u_prev: np.ndarray) -> StepParts:
+            count[0] += 1
+            if exit_at is not None and count[0] > exit_at:
+                os._exit(3)  # the worker dies: an infrastructure failure
+            with log.open("a") as handle:
+                handle.write(f"{name} {config.samples} {os.getpid()}\n")
+            if fail_at is not None and count[0] > fail_at:
+                raise FloatingPointError("diverged")
+            return StepParts(lcs=1e-4, weighting=0.0, admm=1e-4, qp=1e-4, proj=0.0, ok=True)
+        return PreparedBackend(step)
+    return make
+
+
+def _fake_table(monkeypatch: pytest.MonkeyPatch, **factories: Any) -> None:
+    from c3bench.bench import perf_backends
+
+    table = dict(perf_backends.BACKEND_TABLE)
+    for name, make in factories.items():
+        table[name] = dataclasses.replace(table[name], make=make)
+    monkeypatch.setattr(perf_backends, "BACKEND_TABLE", table)
+
+
+@pytest.mark.parametrize("isolated", [True, False])
 def test_backends_are_timed_interleaved_and_a_failing_one_is_skipped(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, isolated: bool) -> None:
     """Every backend of one sample count is warmed up, then round ``r`` runs four consecutive
     steps of each in turn (a slow phase of the machine falls on all alike; the first is
     cache-cold, the others warm); a backend that raises mid-run becomes one skipped row and
-    the others keep their rows."""
-    from c3bench.bench import perf_backends
-    from c3bench.bench.perf_backends import BACKEND_TABLE, PreparedBackend, StepParts
-
-    calls: list[tuple[str, int]] = []
-
-    def factory(name: str, fail_at: int | None = None) -> perf_backends.Factory:
-        def make(context: perf_backends.PerfContext, config: Configuration) -> PreparedBackend:
-            count = [0]
-
-            def step(index: int, x: np.ndarray, u_prev: np.ndarray) -> StepParts:
-                calls.append((name, config.samples))
-                count[0] += 1
-                if fail_at is not None and count[0] > fail_at:
-                    raise FloatingPointError("diverged")
-                return StepParts(lcs=1e-4, weighting=0.0, admm=1e-4, qp=1e-4, proj=0.0,
-                                 ok=True)
-            return PreparedBackend(step)
-        return make
-
-    table = dict(BACKEND_TABLE)
-    table["c3plus-riccati"] = dataclasses.replace(table["c3plus-riccati"], make=factory("a"))
-    table["c3plus-compiled"] = dataclasses.replace(table["c3plus-compiled"],
-                                                   make=factory("b", fail_at=5))
-    monkeypatch.setattr(perf_backends, "BACKEND_TABLE", table)
+    the others keep their rows. Isolated, each configuration steps in a process of its own
+    and none is left running."""
+    log = tmp_path / "calls.log"
+    _fake_table(monkeypatch, **{"c3plus-riccati": _log_factory(log, "a"),
+                                "c3plus-compiled": _log_factory(log, "b", fail_at=5)})
     settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3plus-compiled"),
-                            repeats=3, warmup=1, iterations=1, results_dir=tmp_path)
+                            repeats=3, warmup=1, iterations=1, results_dir=tmp_path,
+                            isolated=isolated)
     frame = run_perf(settings, echo=None)
+    calls = [line.split() for line in log.read_text().splitlines()]
     # one sample count after the other; within it, a and b alternate block by block (b stops
     # at its sixth step, the second of the first timed round)
-    names = [name for name, _ in calls]
+    names = [name for name, _, _ in calls]
     assert names[:22] == ["a"] * 4 + ["b"] * 4 + ["a"] * 4 + ["b"] * 2 + ["a"] * 8
-    assert names[22:] == names[:22] and {n for _, n in calls[22:]} == {2}
+    assert names[22:] == names[:22] and {n for _, n, _ in calls[22:]} == {"2"}
+    processes = {(name, samples): {pid for n, s, pid in calls if (n, s) == (name, samples)}
+                 for name, samples, _ in calls}
+    assert all(len(pids) == 1 for pids in processes.values())
+    pids = set().union(*processes.values())
+    if isolated:  # two configurations per sample count, each in a worker of its own
+        assert len(pids) == 4 and str(os.getpid()) not in pids
+    else:
+        assert pids == {str(os.getpid())}
+    assert not multiprocessing.active_children()
     timed = frame[~frame["skipped"].astype(bool)]
     assert (timed["backend"] == "c3plus-riccati").all() and len(timed) == 2 * 3 * 4
     assert list(timed["cache"]) == ["cold", "warm", "warm", "warm"] * 6
     skipped = frame[frame["skipped"].astype(bool)]
     assert len(skipped) == 2 and skipped["note"].str.contains("FloatingPointError").all()
+
+
+def test_a_lost_worker_stores_nothing_for_its_configuration(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A worker process that dies is an infrastructure failure: its configuration gets no row
+    (not even a skipped one), the run says so and the other backends keep their rows."""
+    log = tmp_path / "calls.log"
+    _fake_table(monkeypatch, **{"c3plus-riccati": _log_factory(log, "a"),
+                                "c3plus-compiled": _log_factory(log, "b", exit_at=6)})
+    lines: list[str] = []
+    frame = run_perf(PerfSettings(samples=(1,), backends=("c3plus-riccati", "c3plus-compiled"),
+                                  repeats=2, warmup=1, iterations=1, results_dir=tmp_path),
+                     echo=lines.append)
+    assert set(frame["backend"]) == {"c3plus-riccati"} and len(frame) == 2 * 4
+    assert not frame["skipped"].astype(bool).any()
+    assert any("c3plus-compiled" in line and "not measured" in line and "exit code 3" in line
+               for line in lines)
+    assert not multiprocessing.active_children()

@@ -1,0 +1,249 @@
+"""Where ``c3bench perf`` runs a configuration's steps: its own process, or this one.
+
+Every configuration (backend, precision, device, samples) of a run is prepared and stepped in
+a process of its own by default (:class:`WorkerBackend`), forked from the run's process once
+the shared inputs exist (:class:`~c3bench.bench.perf_backends.PerfContext`; nothing is
+pickled) and driven block by block, so that the interleaving of :mod:`bench.perf` is kept
+(one process computes at a time, the others wait on their pipes) while no backend runs in an
+interpreter that another backend's runtime has changed. Measured on the 2-core EPYC VM
+(znver3, load average below 1, 16 samples, warm steps, three alternated runs each): the
+compiled ADMM took 832 us alone, 910 us when the JAX backend's steps ran in the same process
+between its blocks (its Python glue 50 % slower, its compiled calls 10 %), and 840 us when
+they ran in another process on the same machine; a controller runs one solver in its
+process, so that is the like-for-like measurement. ``perf --same-process`` measures
+everything in the run's process (:class:`InProcessBackend`) to show the difference.
+
+A backend's own failure (its factory says it cannot run, a step raises) comes back as a
+message and becomes a skipped row, as in one process. A worker that dies or stops answering is
+an infrastructure failure (:class:`WorkerLost`): the configuration gets no row. A worker ends
+with the run's process (parent-death signal, end of file on its pipe) and is joined, or
+killed, when its sample count is done.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import multiprocessing
+import os
+import signal
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from c3bench.bench.executors import die_with_parent
+from c3bench.bench.lock import close_inherited_locks
+from c3bench.bench.perf_backends import (
+    BackendSpec,
+    BackendUnavailable,
+    Configuration,
+    PerfContext,
+    PreparedBackend,
+    StepParts,
+)
+from c3bench.problems.errors import C3BenchError
+
+__all__ = ["BackendFailure", "InProcessBackend", "StepRecord", "WorkerBackend", "WorkerLost",
+           "start_backend"]
+
+JOIN_SECONDS = 5.0
+"""How long a finished worker may take to exit before it is killed."""
+
+
+class WorkerLost(C3BenchError, RuntimeError):
+    """A configuration's worker process died or its pipe closed (no row is stored)."""
+
+
+class BackendFailure(C3BenchError, RuntimeError):
+    """A configuration's step raised (``unavailable``: it raised
+    :class:`~c3bench.bench.perf_backends.BackendUnavailable`); the steps it completed before
+    are in ``records``."""
+
+    def __init__(self, message: str, records: list[StepRecord], unavailable: bool) -> None:
+        super().__init__(message)
+        self.records = records
+        self.unavailable = unavailable
+
+
+@dataclass
+class StepRecord:
+    """One timed control step: wall and CPU seconds around the backend's ``step`` call, its
+    parts and the MFLOP its arithmetic executed (``None``: the backend does not count them)."""
+
+    wall: float
+    cpu: float
+    parts: StepParts
+    executed_mflop: float | None
+
+
+@dataclass(frozen=True)
+class BackendTraits:
+    """What the run needs to know of a prepared backend (:class:`PreparedBackend`)."""
+
+    repeats: int | None
+    note: str
+    flop_model: bool
+
+
+def _traits(prepared: PreparedBackend) -> BackendTraits:
+    return BackendTraits(prepared.repeats, prepared.note, prepared.flop_model)
+
+
+def _run_block(prepared: PreparedBackend, context: PerfContext, first: int, count: int,
+               failure_prefix: str) -> list[StepRecord]:
+    """Steps ``first .. first + count - 1`` of the state sequence, timed (BLAS as the caller
+    pinned it); a step that raises ends the block with :class:`BackendFailure`."""
+    records: list[StepRecord] = []
+    for step in range(first, first + count):
+        index, x, u_prev = context.states[step % len(context.states)]
+        try:
+            wall, cpu = time.perf_counter(), time.process_time()
+            parts = prepared.step(index, x, u_prev)
+            cpu = time.process_time() - cpu
+            wall = time.perf_counter() - wall
+            executed = None if prepared.executed_flops is None else \
+                prepared.executed_flops() / 1e6
+        except BackendUnavailable as error:
+            raise BackendFailure(str(error), records, True) from error
+        except Exception as error:  # a backend that raises: a skipped row
+            raise BackendFailure(f"{failure_prefix}: {type(error).__name__}: {error}",
+                                 records, False) from error
+        records.append(StepRecord(wall, cpu, parts, executed))
+    return records
+
+
+class InProcessBackend:
+    """A configuration prepared and stepped in the run's own process (``--same-process``)."""
+
+    def __init__(self, spec: BackendSpec, context: PerfContext, config: Configuration) -> None:
+        self._prepared = spec.make(context, config)  # BackendUnavailable: nothing to close
+        self._context = context
+        self._failure_prefix = spec.failure
+        self.traits = _traits(self._prepared)
+
+    def run_block(self, first: int, count: int) -> list[StepRecord]:
+        """Timed steps ``first .. first + count - 1`` (:class:`BackendFailure`)."""
+        return _run_block(self._prepared, self._context, first, count, self._failure_prefix)
+
+    def compile_seconds(self) -> float:
+        return float(self._prepared.compile_seconds())
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def _worker(connection: Any, spec: BackendSpec, context: PerfContext, config: Configuration,
+            parent_pid: int, inherited: Sequence[Any]) -> None:
+    """The worker's loop: prepare, then answer ``("block", first, count)``, ``("compile",)``
+    and ``None`` (stop)."""
+    from c3bench.solvers.timing import single_thread_blas
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run's process handles Ctrl-C
+    die_with_parent(parent_pid)
+    for other in inherited:
+        other.close()
+    close_inherited_locks()
+    try:
+        prepared = spec.make(context, config)
+    except BackendUnavailable as error:
+        connection.send(("unavailable", str(error)))
+        return
+    except Exception as error:  # noqa: BLE001 (a factory that raises: a skipped row)
+        connection.send(("unavailable", f"{spec.failure}: {type(error).__name__}: {error}"))
+        return
+    connection.send(("ready", _traits(prepared)))
+    gc.collect()
+    with single_thread_blas():
+        while True:
+            try:
+                message = connection.recv()
+            except (EOFError, OSError):
+                return
+            if message is None:
+                return
+            if message[0] == "compile":
+                connection.send(float(prepared.compile_seconds()))
+                continue
+            try:
+                reply: tuple[Any, ...] = ("ok", _run_block(prepared, context, message[1],
+                                                           message[2], spec.failure))
+            except BackendFailure as failure:
+                reply = ("failed", str(failure), failure.records, failure.unavailable)
+            connection.send(reply)
+
+
+class WorkerBackend:
+    """A configuration prepared and stepped in a forked worker process (module docstring);
+    :class:`BackendUnavailable` from the constructor when its factory says it cannot run."""
+
+    def __init__(self, spec: BackendSpec, context: PerfContext, config: Configuration,
+                 others: Sequence[WorkerBackend] = ()) -> None:
+        fork = multiprocessing.get_context("fork")
+        self._connection, child = fork.Pipe()
+        inherited = [self._connection, *(other._connection for other in others)]
+        self._process = fork.Process(
+            target=_worker, args=(child, spec, context, config, os.getpid(), inherited),
+            name=f"c3bench-perf-{config.backend}-{config.samples}", daemon=True)
+        self._process.start()
+        child.close()
+        try:
+            answer = self._receive()
+        except WorkerLost:
+            self.close()
+            raise
+        if answer[0] == "unavailable":
+            self.close()
+            raise BackendUnavailable(answer[1])
+        self.traits: BackendTraits = answer[1]
+
+    def _receive(self) -> Any:
+        try:
+            return self._connection.recv()
+        except (EOFError, OSError) as error:
+            code = self._process.exitcode
+            self._process.join(JOIN_SECONDS)
+            code = self._process.exitcode if code is None else code
+            raise WorkerLost(f"its worker process ended (exit code {code})") from error
+
+    def run_block(self, first: int, count: int) -> list[StepRecord]:
+        """Timed steps ``first .. first + count - 1`` in the worker (:class:`BackendFailure`,
+        :class:`WorkerLost`)."""
+        try:
+            self._connection.send(("block", first, count))
+        except OSError as error:
+            raise WorkerLost(f"its worker process cannot be reached ({error})") from error
+        reply = self._receive()
+        if reply[0] == "failed":
+            raise BackendFailure(reply[1], reply[2], reply[3])
+        records: list[StepRecord] = reply[1]
+        return records
+
+    def compile_seconds(self) -> float:
+        try:
+            self._connection.send(("compile",))
+        except OSError as error:
+            raise WorkerLost(f"its worker process cannot be reached ({error})") from error
+        return float(self._receive())
+
+    def close(self) -> None:
+        """Stop the worker: ask it, then kill it if it has not exited in
+        :data:`JOIN_SECONDS`."""
+        with contextlib.suppress(OSError):
+            self._connection.send(None)
+        self._process.join(JOIN_SECONDS)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+        self._connection.close()
+
+
+def start_backend(spec: BackendSpec, context: PerfContext, config: Configuration,
+                  isolated: bool, others: Sequence[Any] = ()
+                  ) -> WorkerBackend | InProcessBackend:
+    """The configuration prepared in a worker process (``isolated``) or in this one;
+    ``others`` are the workers already running (their pipes are closed in the new one)."""
+    if not isolated:
+        return InProcessBackend(spec, context, config)
+    return WorkerBackend(spec, context, config,
+                         [other for other in others if isinstance(other, WorkerBackend)])
