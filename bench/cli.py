@@ -214,7 +214,7 @@ def cmd_perf(args: argparse.Namespace) -> int:
                             repeats=args.repeats, warmup=args.warmup,
                             iterations=args.iterations, reference_budget=args.reference_budget,
                             seed=args.seed, results_dir=Path(args.results), cpu=args.cpu,
-                            weighting=args.weighting, isolated=args.isolated)
+                            weighting=args.weighting, worker_processes=args.worker_processes)
     frame = run_perf(settings)
     runs = {str(run) for run in frame["run_id"]}
     written = [*(path for path in perf_store.perf_run_files(settings.results_dir)
@@ -346,7 +346,7 @@ def _add_perf(sub: Any) -> None:
     perf.add_argument("--cpu", type=nonnegative_int, default=None, metavar="CORE",
                       help="pin the process to this CPU core; XLA may otherwise use a "
                            "second core for the JAX backend")
-    perf.add_argument("--same-process", dest="isolated", action="store_false",
+    perf.add_argument("--same-process", dest="worker_processes", action="store_false",
                       help="measure every backend in this process instead of one worker "
                            "process each (the JAX runtime then slows the compiled step)")
     add_results(perf, "writes ROOT/perf/")

@@ -95,7 +95,6 @@ from __future__ import annotations
 import gc
 import math
 import os
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -114,6 +113,8 @@ from c3bench.bench.perf_backends import (
     Configuration,
     PerfContext,
     backend_spec,
+    lcs_dimensions,
+    pin_jax_threads,
     precisions_of,
     sample_sides,
 )
@@ -133,6 +134,7 @@ from c3bench.bench.perf_workers import (
     StepRecord,
     WorkerBackend,
     WorkerLost,
+    process_mode,
     start_backend,
 )
 from c3bench.bench.progress import progress_bar
@@ -161,7 +163,6 @@ BLOCK_STATES: tuple[CacheState, ...] = (CacheState.COLD,) + (CacheState.WARM,) *
     STEPS_PER_ROUND - 1)
 """The cache state of each step of a block: cold (it follows another configuration's block or
 the round's matmul probe), then warm."""
-XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 
 
 @dataclass
@@ -181,7 +182,7 @@ class PerfSettings:
     cpu: int | None = None
     weighting: bool = True
     """LCP-error sample weighting in every step with ``n > 1`` samples."""
-    isolated: bool = True
+    worker_processes: bool = True
     """Each configuration in its own worker process (:mod:`bench.perf_workers`); ``False``:
     all in the run's process (``--same-process``)."""
 
@@ -217,16 +218,6 @@ class _Run:
     """``(nx, nlam, nu)`` of the LCS."""
 
 
-def pin_jax_threads() -> bool:
-    """Put XLA's CPU backend on one thread (``XLA_FLAGS``) if JAX is not imported yet."""
-    if "jax" in sys.modules:
-        return XLA_ONE_THREAD in os.environ.get("XLA_FLAGS", "")
-    flags = os.environ.get("XLA_FLAGS", "")
-    if XLA_ONE_THREAD not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {XLA_ONE_THREAD}".strip()
-    return True
-
-
 def perf_context(settings: PerfSettings) -> PerfContext:
     """The shared inputs of a run: config, MPC, the scripted push and its visited states."""
     from c3bench.problems.config import load_config
@@ -245,16 +236,6 @@ def perf_context(settings: PerfSettings) -> PerfContext:
                        reference_budget=settings.reference_budget, warmup=settings.warmup)
 
 
-def lcs_dimensions(context: PerfContext) -> tuple[int, int, int]:
-    """``(nx, nlam, nu)`` of the LCS at the first visited state."""
-    from c3bench.problems.linearize_batch import BatchLinearizer
-
-    _, x, u_prev = context.states[0]
-    lcs = BatchLinearizer(sample_sides(1, context.seed), context.config).linearize(
-        x, u_prev, context.config.mpc.dt)
-    return int(lcs.nx), int(lcs.nlam), int(lcs.nu)
-
-
 def _row(run: _Run, config: Configuration, **values: Any) -> dict[str, Any]:
     row: dict[str, Any] = {
         "schema_version": store.SCHEMA_VERSION, "run_id": run.run_id,
@@ -270,7 +251,7 @@ def _row(run: _Run, config: Configuration, **values: Any) -> dict[str, Any]:
         "admm_mflop": math.nan, "matmul_gflops_f64": run.rates.float64,
         "matmul_gflops_f32": run.rates.float32, "compile_s": math.nan,
         "admm_mflop_executed": math.nan, "cache": "", "matmul_run_gflops_f64": math.nan,
-        "matmul_run_gflops_f32": math.nan,
+        "matmul_run_gflops_f32": math.nan, "process": "",
     }
     row.update(values)
     return row
@@ -324,7 +305,7 @@ def _record_step(run: _Run, m: _Measurement, step: int, record: StepRecord, cach
         note=m.note, blas_threads=threads, load_avg=load, weighted=parts.weighted,
         weighting_ms=weighting, admm_ms=1e3 * parts.admm,
         total_no_weighting_ms=total - weighting, admm_mflop=model,
-        admm_mflop_executed=executed, cache=str(cache)))
+        admm_mflop_executed=executed, cache=str(cache), process=str(m.backend.process)))
 
 
 def _time_block(run: _Run, m: _Measurement, r: int, load: float, threads: int) -> None:
@@ -375,6 +356,9 @@ def _measure_interleaved(run: _Run, measurements: list[_Measurement], progress: 
             continue
         try:
             compile_seconds = m.backend.compile_seconds()
+        except BackendFailure as failure:
+            m.failure = str(failure)
+            continue
         except WorkerLost as error:
             m.lost = str(error)
             continue
@@ -462,7 +446,8 @@ def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
 
     def skip(config: Configuration, note: str) -> None:
         say(f"{_label(config)} skipped: {note}")
-        rows.append(_row(run, config, skipped=True, note=note, load_avg=load_average()))
+        rows.append(_row(run, config, skipped=True, note=note, load_avg=load_average(),
+                         process=str(process_mode(settings.worker_processes))))
 
     measurements: list[_Measurement] = []
     try:
@@ -470,7 +455,7 @@ def _run_group(run: _Run, settings: PerfSettings, group: list[Configuration],
             spec = backend_spec(config.backend)
             assert spec is not None  # checked by PerfSettings
             try:
-                backend = start_backend(spec, run.context, config, settings.isolated,
+                backend = start_backend(spec, run.context, config, settings.worker_processes,
                                         [m.backend for m in measurements])
             except BackendUnavailable as error:
                 skip(config, str(error))

@@ -14,6 +14,8 @@ Adding a backend is one entry in :data:`BACKEND_TABLE`.
 from __future__ import annotations
 
 import math
+import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -91,6 +93,10 @@ class StepParts:
 Step = Callable[[int, np.ndarray, np.ndarray], StepParts]
 
 
+XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+"""XLA flags that keep its CPU backend on one thread (:func:`pin_jax_threads`)."""
+
+
 def _no_compile() -> float:
     return math.nan
 
@@ -136,6 +142,26 @@ def sample_sides(samples: int, seed: int) -> np.ndarray:
     if samples == 1:
         return np.array([0.29])
     return np.random.default_rng([seed, samples]).uniform(0.27, 0.33, samples)
+
+
+def pin_jax_threads() -> bool:
+    """Put XLA's CPU backend on one thread (``XLA_FLAGS``) if JAX is not imported yet."""
+    if "jax" in sys.modules:
+        return XLA_ONE_THREAD in os.environ.get("XLA_FLAGS", "")
+    flags = os.environ.get("XLA_FLAGS", "")
+    if XLA_ONE_THREAD not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {XLA_ONE_THREAD}".strip()
+    return True
+
+
+def lcs_dimensions(context: PerfContext) -> tuple[int, int, int]:
+    """``(nx, nlam, nu)`` of the LCS at the first visited state."""
+    from c3bench.problems.linearize_batch import BatchLinearizer
+
+    _, x, u_prev = context.states[0]
+    lcs = BatchLinearizer(sample_sides(1, context.seed), context.config).linearize(
+        x, u_prev, context.config.mpc.dt)
+    return int(lcs.nx), int(lcs.nlam), int(lcs.nu)
 
 
 def _weights(context: PerfContext, samples: Callable[[], Any], index: int,

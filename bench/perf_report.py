@@ -254,11 +254,15 @@ def history_lines(stored: pd.DataFrame, host: str, runs: int = HISTORY_RUNS) -> 
     lines = [f"Recent runs on this machine: the last {len(ids)} that timed {HISTORY_BACKEND} "
              "at 16 samples (warm cache; each run with the code current when it ran), its "
              "speed-ups over c3plus-riccati and its share of the matmul rate through the run "
-             "(of the best at the start for runs stored before perf layout 5):",
-             "", "| run | load | " + " | ".join(names) + " | % matmul |",
-             "|---|---|" + "---|" * (len(names) + 1)]
+             "(of the best at the start for runs stored before perf layout 5); `process`: "
+             "each configuration in a worker process of its own, or all in one (`shared`):",
+             "", "| run | process | load | " + " | ".join(names) + " | % matmul |",
+             "|---|---|---|" + "---|" * (len(names) + 1)]
     for run_id in ids:
-        summary = summarize(frame[frame["run_id"].astype(str) == run_id])
+        rows = frame[frame["run_id"].astype(str) == run_id]
+        summary = summarize(rows)
+        process = "/".join(sorted({value for value in rows["process"]
+                                    if isinstance(value, str) and value})) or "-"
         if (summary["cache"] == CacheState.WARM.value).any():
             summary = summary[summary["cache"] == CacheState.WARM.value]
         cells = []
@@ -268,7 +272,8 @@ def history_lines(stored: pd.DataFrame, host: str, runs: int = HISTORY_RUNS) -> 
         share = _judged_share(summary, HISTORY_BACKEND)
         cells.append(_count(met["% matmul"], share, SHARE_TARGET, f"{100 * share:.1f}"))
         load = _at(summary, HISTORY_BACKEND, 16, "load_avg")
-        lines.append(f"| {run_id} | " + (f"{load:.2f}" if math.isfinite(load) else "-")
+        lines.append(f"| {run_id} | {process} | "
+                     + (f"{load:.2f}" if math.isfinite(load) else "-")
                      + " | " + " | ".join(cells) + " |")
     thresholds = [f"{factor:g}x" for *_, factor in SPEEDUP_TARGETS] + [
         f"{100 * SHARE_TARGET:g} %"]

@@ -7,8 +7,9 @@
 Parquet helpers are those of :mod:`bench.store`; the perf table's own layout is versioned
 beside them (:data:`PERF_SCHEMA_VERSION`: layout 2 added the weighting, ADMM-alone, flop-model,
 matmul-rate and compile-time columns, layout 3 the executed flops, layout 4 the cache state
-of each step, layout 5 the matmul rate through the run), and files of layouts 1 to 4 are still
-read, their missing columns NaN (:func:`upgrade_perf_frame`).
+of each step, layout 5 the matmul rate through the run, layout 6 the process each
+configuration ran in), and files of layouts 1 to 5 are still read, their missing columns NaN
+(:func:`upgrade_perf_frame`).
 """
 
 from __future__ import annotations
@@ -35,14 +36,24 @@ from c3bench.problems.errors import SchemaVersionError
 from c3bench.problems.instance import atomic_write_bytes
 
 # --- perf: control-step times -----------------------------------------------------------------
-PERF_SCHEMA_VERSION = 5
+PERF_SCHEMA_VERSION = 6
 """Version of the perf table's own layout (beside :data:`SCHEMA_VERSION`, which every table
 of :mod:`bench.store` carries): 1 without the columns of :data:`PERF_V2_COLUMNS`, 2 with
-them but ``admm_mflop_executed``, ``cache`` and ``matmul_run_gflops_*``, 3 without the last
-two, 4 without ``matmul_run_gflops_*``, 5 with all of them. Stored in the
-``perf_schema_version`` column and the Parquet metadata key :data:`PERF_METADATA_KEY`; a file
-of layout 1 (neither) to 4 is read with the columns it lacks NaN (``False`` for ``weighted``,
-``cache`` by :func:`old_cache_states`)."""
+them but ``admm_mflop_executed``, ``cache``, ``matmul_run_gflops_*`` and ``process``, 3
+without the last three, 4 without ``matmul_run_gflops_*`` and ``process``, 5 without
+``process``, 6 with all of them. Stored in the ``perf_schema_version`` column and the Parquet
+metadata key :data:`PERF_METADATA_KEY`; a file of layout 1 (neither) to 5 is read with the
+columns it lacks NaN (``False`` for ``weighted``, ``cache`` by :func:`old_cache_states`,
+``process`` ``shared``: those runs measured every configuration in one process)."""
+
+
+class ProcessMode(StrEnum):
+    """Where a configuration's steps ran (``process`` column; :mod:`bench.perf_workers`)."""
+
+    WORKER = "worker"
+    """A worker process of its own, forked from the run's process (the default)."""
+    SHARED = "shared"
+    """The run's own process, with the other configurations (``--same-process``)."""
 
 
 class CacheState(StrEnum):
@@ -119,11 +130,15 @@ PERF_SCHEMA: tuple[Column, ...] = (
            "run: the median over the timed rounds of this sample count of each round's "
            "median of 3 products (bench/perf_flops.py, MatmulProbe); NaN in layouts 1-4."),
     Column("matmul_run_gflops_f32", "float64", "The same in float32."),
+    # layout 6
+    Column("process", "str", "worker: the configuration was prepared and stepped in a "
+           "worker process of its own; shared: in the run's process with the others "
+           "(--same-process; every run of layouts 1-5) (:class:`ProcessMode`)."),
 )
 PERF_COLUMNS: tuple[str, ...] = tuple(column.name for column in PERF_SCHEMA)
 PERF_V2_COLUMNS: tuple[str, ...] = PERF_COLUMNS[PERF_COLUMNS.index("perf_schema_version"):]
-"""Columns added by perf layouts 2 to 5 (filled with NaN, ``weighted`` ``False``, ``cache`` by
-:func:`old_cache_states`, when an older file lacks them)."""
+"""Columns added by perf layouts 2 to 6 (filled with NaN, ``weighted`` ``False``, ``cache`` by
+:func:`old_cache_states`, ``process`` ``shared``, when an older file lacks them)."""
 PERF_READABLE: tuple[int, ...] = (1, SCHEMA_VERSION)
 """Values of :data:`SCHEMA_VERSION` whose perf tables this c3bench reads (the perf table's own
 changes are versioned by :data:`PERF_SCHEMA_VERSION`)."""
@@ -147,9 +162,10 @@ def old_cache_states(frame: pd.DataFrame) -> pd.Series:
 
 
 def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
-    """The rows of a stored perf table in the current layout: a table of layouts 1 to 4 gets
+    """The rows of a stored perf table in the current layout: a table of layouts 1 to 5 gets
     the columns of :data:`PERF_V2_COLUMNS` it lacks (NaN, ``weighted`` ``False``, ``cache`` by
-    :func:`old_cache_states`; a file without a layout is version 1); a newer
+    :func:`old_cache_states`, ``process`` ``shared``; a file without a layout is version 1); a
+    newer
     layout than :data:`PERF_SCHEMA_VERSION` raises :class:`SchemaVersionError`."""
     frame = frame.copy()
     if "perf_schema_version" not in frame.columns:
@@ -162,7 +178,8 @@ def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
             f"{PERF_SCHEMA_VERSION}; delete or move {results_folder(Path(source))}")
     for name in PERF_V2_COLUMNS:
         if name not in frame.columns:
-            frame[name] = False if name == "weighted" else math.nan
+            frame[name] = False if name == "weighted" else ProcessMode.SHARED.value \
+                if name == "process" else math.nan
     if "cache" in frame.columns and frame["cache"].isna().any():
         frame["cache"] = frame["cache"].astype(object).where(frame["cache"].notna(),
                                                             old_cache_states(frame))

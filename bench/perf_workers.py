@@ -13,11 +13,16 @@ they ran in another process on the same machine; a controller runs one solver in
 process, so that is the like-for-like measurement. ``perf --same-process`` measures
 everything in the run's process (:class:`InProcessBackend`) to show the difference.
 
-A backend's own failure (its factory says it cannot run, a step raises) comes back as a
-message and becomes a skipped row, as in one process. A worker that dies or stops answering is
-an infrastructure failure (:class:`WorkerLost`): the configuration gets no row. A worker ends
-with the run's process (parent-death signal, end of file on its pipe) and is joined, or
-killed, when its sample count is done.
+A backend's own failure (its factory says it cannot run or raises, a step raises, what it
+returns cannot be sent back) comes back as a message and becomes a skipped row, in either
+mode. A worker that dies is an infrastructure failure (:class:`WorkerLost`): the
+configuration gets no row. There is no time limit on a block (the reference controller's
+blocks take tens of seconds); a worker ends with the run's process (parent-death signal, end
+of file on its pipe, SIGTERM handled as an exit) and is joined, or killed, when its sample
+count is done. Without ``--cpu`` the workers may run on either core, so a ``cold`` step may
+find its core's private caches as its own last step left them; ``--cpu N`` puts every worker
+on one core. Where ``fork`` is not available (Windows), every configuration runs in the run's
+process, as with ``--same-process``.
 """
 
 from __future__ import annotations
@@ -30,9 +35,10 @@ import signal
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
-from c3bench.bench.executors import die_with_parent
+from c3bench.bench.executors import _exit_on_sigterm, die_with_parent
 from c3bench.bench.lock import close_inherited_locks
 from c3bench.bench.perf_backends import (
     BackendSpec,
@@ -42,10 +48,11 @@ from c3bench.bench.perf_backends import (
     PreparedBackend,
     StepParts,
 )
+from c3bench.bench.perf_store import ProcessMode
 from c3bench.problems.errors import C3BenchError
 
 __all__ = ["BackendFailure", "InProcessBackend", "StepRecord", "WorkerBackend", "WorkerLost",
-           "start_backend"]
+           "process_mode", "start_backend"]
 
 JOIN_SECONDS = 5.0
 """How long a finished worker may take to exit before it is killed."""
@@ -90,6 +97,19 @@ def _traits(prepared: PreparedBackend) -> BackendTraits:
     return BackendTraits(prepared.repeats, prepared.note, prepared.flop_model)
 
 
+def _prepare(spec: BackendSpec, context: PerfContext, config: Configuration
+             ) -> PreparedBackend:
+    """The configuration prepared by its factory; :class:`BackendUnavailable` when the
+    factory says it cannot run or raises (the skipped row's note says which)."""
+    try:
+        return spec.make(context, config)
+    except BackendUnavailable:
+        raise
+    except Exception as error:  # a factory that raises: a skipped row, not a crashed run
+        raise BackendUnavailable(f"preparation failed: {type(error).__name__}: {error}"
+                                 ) from error
+
+
 def _run_block(prepared: PreparedBackend, context: PerfContext, first: int, count: int,
                failure_prefix: str) -> list[StepRecord]:
     """Steps ``first .. first + count - 1`` of the state sequence, timed (BLAS as the caller
@@ -116,8 +136,10 @@ def _run_block(prepared: PreparedBackend, context: PerfContext, first: int, coun
 class InProcessBackend:
     """A configuration prepared and stepped in the run's own process (``--same-process``)."""
 
+    process = ProcessMode.SHARED
+
     def __init__(self, spec: BackendSpec, context: PerfContext, config: Configuration) -> None:
-        self._prepared = spec.make(context, config)  # BackendUnavailable: nothing to close
+        self._prepared = _prepare(spec, context, config)  # BackendUnavailable: nothing to close
         self._context = context
         self._failure_prefix = spec.failure
         self.traits = _traits(self._prepared)
@@ -127,7 +149,12 @@ class InProcessBackend:
         return _run_block(self._prepared, self._context, first, count, self._failure_prefix)
 
     def compile_seconds(self) -> float:
-        return float(self._prepared.compile_seconds())
+        """JIT seconds in this process (:class:`BackendFailure` when that raises)."""
+        try:
+            return float(self._prepared.compile_seconds())
+        except Exception as error:  # the backend's failure: a skipped row
+            raise BackendFailure(f"{self._failure_prefix}: {type(error).__name__}: {error}",
+                                 [], False) from error
 
     def close(self) -> None:
         """Nothing to release."""
@@ -140,17 +167,15 @@ def _worker(connection: Any, spec: BackendSpec, context: PerfContext, config: Co
     from c3bench.solvers.timing import single_thread_blas
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run's process handles Ctrl-C
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)  # not the CLI's handler, copied by fork
     die_with_parent(parent_pid)
     for other in inherited:
         other.close()
     close_inherited_locks()
     try:
-        prepared = spec.make(context, config)
+        prepared = _prepare(spec, context, config)
     except BackendUnavailable as error:
         connection.send(("unavailable", str(error)))
-        return
-    except Exception as error:  # noqa: BLE001 (a factory that raises: a skipped row)
-        connection.send(("unavailable", f"{spec.failure}: {type(error).__name__}: {error}"))
         return
     connection.send(("ready", _traits(prepared)))
     gc.collect()
@@ -162,20 +187,37 @@ def _worker(connection: Any, spec: BackendSpec, context: PerfContext, config: Co
                 return
             if message is None:
                 return
-            if message[0] == "compile":
-                connection.send(float(prepared.compile_seconds()))
-                continue
-            try:
-                reply: tuple[Any, ...] = ("ok", _run_block(prepared, context, message[1],
-                                                           message[2], spec.failure))
-            except BackendFailure as failure:
-                reply = ("failed", str(failure), failure.records, failure.unavailable)
-            connection.send(reply)
+            connection.send_bytes(_answer(prepared, context, spec, message))
+
+
+def _answer(prepared: PreparedBackend, context: PerfContext, spec: BackendSpec,
+            message: tuple[Any, ...]) -> bytes:
+    """The pickled reply to ``("block", first, count)`` or ``("compile",)``: ``("ok",
+    value)`` or ``("failed", note, records, unavailable)`` (the backend's own failure)."""
+    reply: tuple[Any, ...]
+    try:
+        if message[0] == "compile":
+            reply = ("ok", float(prepared.compile_seconds()))
+        else:
+            reply = ("ok", _run_block(prepared, context, message[1], message[2],
+                                      spec.failure))
+    except BackendFailure as failure:
+        reply = ("failed", str(failure), failure.records, failure.unavailable)
+    except Exception as error:  # noqa: BLE001 (its compile_seconds raised: its failure)
+        reply = ("failed", f"{spec.failure}: {type(error).__name__}: {error}", [], False)
+    try:
+        return bytes(ForkingPickler.dumps(reply))
+    except Exception as error:  # noqa: BLE001 (what it returned cannot be pickled)
+        return bytes(ForkingPickler.dumps(
+            ("failed", f"{spec.failure}: its result cannot be sent back "
+                       f"({type(error).__name__}: {error})", [], False)))
 
 
 class WorkerBackend:
     """A configuration prepared and stepped in a forked worker process (module docstring);
     :class:`BackendUnavailable` from the constructor when its factory says it cannot run."""
+
+    process = ProcessMode.WORKER
 
     def __init__(self, spec: BackendSpec, context: PerfContext, config: Configuration,
                  others: Sequence[WorkerBackend] = ()) -> None:
@@ -184,12 +226,12 @@ class WorkerBackend:
         inherited = [self._connection, *(other._connection for other in others)]
         self._process = fork.Process(
             target=_worker, args=(child, spec, context, config, os.getpid(), inherited),
-            name=f"c3bench-perf-{config.backend}-{config.samples}", daemon=True)
+            name=f"c3bench-perf-{config.backend}-{config.precision}-{config.samples}", daemon=True)
         self._process.start()
         child.close()
         try:
             answer = self._receive()
-        except WorkerLost:
+        except BaseException:  # lost, or Ctrl-C while it prepares: never leave it running
             self.close()
             raise
         if answer[0] == "unavailable":
@@ -213,18 +255,24 @@ class WorkerBackend:
             self._connection.send(("block", first, count))
         except OSError as error:
             raise WorkerLost(f"its worker process cannot be reached ({error})") from error
-        reply = self._receive()
-        if reply[0] == "failed":
-            raise BackendFailure(reply[1], reply[2], reply[3])
-        records: list[StepRecord] = reply[1]
+        records: list[StepRecord] = self._reply()
         return records
 
     def compile_seconds(self) -> float:
+        """JIT seconds in the worker (:class:`BackendFailure`, :class:`WorkerLost`)."""
         try:
             self._connection.send(("compile",))
         except OSError as error:
             raise WorkerLost(f"its worker process cannot be reached ({error})") from error
-        return float(self._receive())
+        return float(self._reply())
+
+    def _reply(self) -> Any:
+        """The value of an ``("ok", value)`` reply; :class:`BackendFailure` for a
+        ``("failed", ...)`` one."""
+        reply = self._receive()
+        if reply[0] == "failed":
+            raise BackendFailure(reply[1], reply[2], reply[3])
+        return reply[1]
 
     def close(self) -> None:
         """Stop the worker: ask it, then kill it if it has not exited in
@@ -238,12 +286,21 @@ class WorkerBackend:
         self._connection.close()
 
 
+def process_mode(worker_processes: bool) -> ProcessMode:
+    """Where :func:`start_backend` runs configurations: in workers when asked and ``fork``
+    is available, else in the run's process."""
+    if worker_processes and "fork" in multiprocessing.get_all_start_methods():
+        return ProcessMode.WORKER
+    return ProcessMode.SHARED
+
+
 def start_backend(spec: BackendSpec, context: PerfContext, config: Configuration,
-                  isolated: bool, others: Sequence[Any] = ()
+                  worker_process: bool, others: Sequence[Any] = ()
                   ) -> WorkerBackend | InProcessBackend:
-    """The configuration prepared in a worker process (``isolated``) or in this one;
-    ``others`` are the workers already running (their pipes are closed in the new one)."""
-    if not isolated:
+    """The configuration prepared in a worker process (``worker_process``, where
+    :func:`process_mode` allows it) or in this one; ``others`` are the workers already running
+    (their pipes are closed in the new one)."""
+    if process_mode(worker_process) == ProcessMode.SHARED:
         return InProcessBackend(spec, context, config)
     return WorkerBackend(spec, context, config,
                          [other for other in others if isinstance(other, WorkerBackend)])

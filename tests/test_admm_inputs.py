@@ -86,13 +86,19 @@ def test_weights_are_floored_relative_to_the_largest_and_sum_to_one() -> None:
         floor = 1e-3
         p = normalise_weights(raw.tolist(), raw.size, floor)
         bound = Fraction(floor) * Fraction(float(raw.max()))
-        floored = [max(Fraction(float(a)), bound) for a in raw]
+        floored = [max(Fraction(float(a)), bound) for a in raw]  # max(a, f max a), exact
         exact = [float(value / sum(floored)) for value in floored]
         np.testing.assert_allclose(p, exact, rtol=1e-14, atol=0)  # the sum: n roundings
         assert abs(p.sum() - 1) < 1e-14 and p.min() >= floor * p.max() * (1 - 1e-15)
         np.testing.assert_allclose(normalise_weights(raw * 1e-7, raw.size, floor), p,
                                    rtol=1e-14)
     np.testing.assert_array_equal(normalise_weights(None, 4), np.full(4, 0.25))
+    # extremes: the floor of a tiny largest weight does not underflow, huge weights do not
+    # overflow the sum
+    np.testing.assert_allclose(normalise_weights([1e-320, 0.0], 2, 1e-6),
+                               np.array([1.0, 1e-6]) / (1 + 1e-6), rtol=1e-15)
+    np.testing.assert_allclose(normalise_weights([1e308] * 3, 3), np.full(3, 1 / 3),
+                               rtol=1e-15)
 
 
 @pytest.mark.parametrize("weights", [[1.0, -0.5], [1.0, np.nan], [1.0, np.inf], [0.0, 0.0],
@@ -112,7 +118,8 @@ def test_a_controllers_own_warm_start_is_used_as_it_is_and_gives_the_checked_ans
 
     mpc, batch, x0 = random_lcs_problem(3, seed=5)
     options = C3Options(keep_iterates=False)
-    for solver in (FastC3Plus(mpc, options), CompiledC3Plus(mpc, options)):
+    for solver in (FastC3Plus(mpc, options), CompiledC3Plus(mpc, options),
+                   CompiledC3Plus(mpc, options, precision="float32")):
         controller = FastC3PlusController(solver)
         controller.step(batch, x0)
         delta, w = controller.warm(controller.delta.shape)
@@ -129,3 +136,10 @@ def test_a_controllers_own_warm_start_is_used_as_it_is_and_gives_the_checked_ans
         bad[0, 0, 0] = np.nan
         with pytest.raises(InputError, match="delta has non-finite entries"):
             solver.solve(batch, x0, None, bad, w)
+        # trusted or not, iterates of another shape or precision are checked (and converted)
+        short = delta[:, :-1]
+        with pytest.raises(InputError, match="delta must have shape"):
+            solver.solve(batch, x0, None, short, w[:, :-1], trusted_iterates=True)
+        other = delta.astype(np.float32 if delta.dtype == np.float64 else np.float64)
+        assert initial_iterates(layout, x0, 3, other, w, solver.dtype,
+                                trusted=True)[0].dtype == solver.dtype

@@ -164,8 +164,8 @@ def test_perf_runs_each_backend_in_its_own_process_unless_told() -> None:
     from c3bench.bench.perf import PerfSettings
 
     parser = build_parser()
-    assert parser.parse_args(["perf"]).isolated is PerfSettings().isolated is True
-    assert parser.parse_args(["perf", "--same-process"]).isolated is False
+    assert parser.parse_args(["perf"]).worker_processes is PerfSettings().worker_processes is True
+    assert parser.parse_args(["perf", "--same-process"]).worker_processes is False
 
 
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:

@@ -133,9 +133,9 @@ def _fake_table(monkeypatch: pytest.MonkeyPatch, **factories: Any) -> None:
     monkeypatch.setattr(perf_backends, "BACKEND_TABLE", table)
 
 
-@pytest.mark.parametrize("isolated", [True, False])
+@pytest.mark.parametrize("worker_processes", [True, False])
 def test_backends_are_timed_interleaved_and_a_failing_one_is_skipped(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, isolated: bool) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, worker_processes: bool) -> None:
     """Every backend of one sample count is warmed up, then round ``r`` runs four consecutive
     steps of each in turn (a slow phase of the machine falls on all alike; the first is
     cache-cold, the others warm); a backend that raises mid-run becomes one skipped row and
@@ -146,7 +146,7 @@ def test_backends_are_timed_interleaved_and_a_failing_one_is_skipped(
                                 "c3plus-compiled": _log_factory(log, "b", fail_at=5)})
     settings = PerfSettings(samples=(1, 2), backends=("c3plus-riccati", "c3plus-compiled"),
                             repeats=3, warmup=1, iterations=1, results_dir=tmp_path,
-                            isolated=isolated)
+                            worker_processes=worker_processes)
     frame = run_perf(settings, echo=None)
     calls = [line.split() for line in log.read_text().splitlines()]
     # one sample count after the other; within it, a and b alternate block by block (b stops
@@ -158,7 +158,7 @@ def test_backends_are_timed_interleaved_and_a_failing_one_is_skipped(
                  for name, samples, _ in calls}
     assert all(len(pids) == 1 for pids in processes.values())
     pids = set().union(*processes.values())
-    if isolated:  # two configurations per sample count, each in a worker of its own
+    if worker_processes:  # two configurations per sample count, each in a worker of its own
         assert len(pids) == 4 and str(os.getpid()) not in pids
     else:
         assert pids == {str(os.getpid())}
@@ -168,6 +168,42 @@ def test_backends_are_timed_interleaved_and_a_failing_one_is_skipped(
     assert list(timed["cache"]) == ["cold", "warm", "warm", "warm"] * 6
     skipped = frame[frame["skipped"].astype(bool)]
     assert len(skipped) == 2 and skipped["note"].str.contains("FloatingPointError").all()
+    assert set(frame["process"]) == {"worker" if worker_processes else "shared"}
+
+
+@pytest.mark.parametrize("worker_processes", [True, False])
+def test_a_backend_that_cannot_be_prepared_or_timed_is_a_skipped_row(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, worker_processes: bool) -> None:
+    """In a worker or not: a factory that says it cannot run, a factory that raises and a
+    backend whose compile-time query raises each become one skipped row with the reason."""
+    from c3bench.bench.perf_backends import PreparedBackend, StepParts
+
+    def unavailable(context: Any, config: Configuration) -> PreparedBackend:
+        raise BackendUnavailable("no such thing here")
+
+    def raising(context: Any, config: Configuration) -> PreparedBackend:
+        raise ZeroDivisionError("bad factory")
+
+    def bad_compile(context: Any, config: Configuration) -> PreparedBackend:
+        def step(index: int, x: np.ndarray, u_prev: np.ndarray) -> StepParts:
+            return StepParts(lcs=1e-4, weighting=0.0, admm=1e-4, qp=1e-4, proj=0.0, ok=True)
+
+        def compile_seconds() -> float:
+            raise KeyError("no record")
+        return PreparedBackend(step, compile_seconds=compile_seconds)
+
+    _fake_table(monkeypatch, **{"c3plus-riccati": unavailable, "c3plus-compiled": raising,
+                                "c3plus-jax": bad_compile})
+    frame = run_perf(PerfSettings(samples=(1,), backends=("c3plus-riccati", "c3plus-compiled",
+                                                          "c3plus-jax"),
+                                  repeats=1, warmup=0, iterations=1, results_dir=tmp_path,
+                                  worker_processes=worker_processes), echo=None)
+    assert frame["skipped"].astype(bool).all() and len(frame) == 3
+    notes = dict(zip(frame["backend"], frame["note"], strict=True))
+    assert notes["c3plus-riccati"] == "no such thing here"
+    assert notes["c3plus-compiled"] == "preparation failed: ZeroDivisionError: bad factory"
+    assert notes["c3plus-jax"].endswith("KeyError: 'no record'")
+    assert not multiprocessing.active_children()
 
 
 def test_a_lost_worker_stores_nothing_for_its_configuration(

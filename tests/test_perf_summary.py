@@ -109,6 +109,15 @@ def test_layout_three_rows_get_their_cache_state(tmp_path: Path) -> None:
     assert states[("r2", 16, False)] == "warm" and states[("r1", 64, True)] == ""
 
 
+def test_rows_before_layout_six_ran_in_one_process(tmp_path: Path) -> None:
+    """Every run before layout 6 measured all its configurations in the run's process."""
+    frame = _frame().assign(perf_schema_version=5)
+    if "process" in frame.columns:
+        frame = frame.drop(columns=["process"])
+    read = perf_store.upgrade_perf_frame(frame, tmp_path / "x.parquet")
+    assert (read["process"] == perf_store.ProcessMode.SHARED.value).all()
+
+
 def test_ratios_are_nan_without_the_reference() -> None:
     summary = pd.DataFrame({"run_id": ["a"], "host": ["h"], "backend": ["x"],
                             "precision": ["float64"], "samples": [4], "cache": ["warm"],
@@ -221,7 +230,7 @@ def test_history_counts_the_targets_met_over_a_machines_recent_runs() -> None:
     lines = history_lines(stored, "h")
     table = [line for line in lines if line.startswith("| r") and not line.startswith("| run")]
     assert [line.split(" | ")[0] for line in table] == ["| r1", "| r2", "| r3"]
-    assert table[0] == "| r1 | 0.50 | 8.0x | 5.0x | 8.0x | 30.0 |"
+    assert table[0] == "| r1 | - | 0.50 | 8.0x | 5.0x | 8.0x | 30.0 |"
     summary = lines[-2]
     assert "ADMM at 16 >= 6x in 3 of 3" in summary
     assert "whole step at 16 >= 4x in 3 of 3" in summary

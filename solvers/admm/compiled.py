@@ -305,8 +305,8 @@ class CompiledC3PlusKernel:
                         ) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
         """The arguments of :func:`compiled_plan.run_plan` before ``p`` and after ``terminal``:
         the same objects while the shapes, the plan, the structure and the group buffer stay
-        (remembered with the objects they were made from, compared by identity), so that a
-        control step does not gather them again."""
+        (remembered with the objects they were made from, compared by identity, the planned
+        count by value), so that a control step does not gather them again."""
         assert self._planned is not None and self._plan_stacked is not None
         f, a = self._planned, self._arrays
         jacobi = bool(self.riccati.jacobi)

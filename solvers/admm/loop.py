@@ -74,11 +74,13 @@ def weighted_norm(values: np.ndarray, p: np.ndarray) -> float:
 
 def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -> np.ndarray:
     """Sample weights floored at ``floor`` times the largest and scaled to sum 1 (uniform if
-    None): ``p_j = max(a_j, f max_k a_k) / sum_i max(a_i, f max_k a_k)``.
+    None): ``p_j = max(a_j / a_max, f) / sum_i max(a_i / a_max, f)``.
 
     The floor keeps every sample's QP well posed (a zero weight would remove its cost); it is
-    relative, so scaling every weight leaves ``p`` unchanged. Weights of the wrong shape,
-    negative, non-finite or all zero raise :class:`InputError` (a ``ValueError``), one line.
+    relative, so scaling every weight leaves ``p`` unchanged up to rounding, and dividing by
+    the largest first keeps every term in ``[f, 1]`` (no underflow of the floor for tiny
+    weights, no overflow of the sum for huge ones). Weights of the wrong shape, negative,
+    non-finite or all zero raise :class:`InputError` (a ``ValueError``), one line.
     """
     if weights is None:
         return np.full(samples, 1.0 / samples)
@@ -93,7 +95,7 @@ def normalise_weights(weights: Any, samples: int, floor: float = WEIGHT_FLOOR) -
     lowest, largest = np.minimum.reduce(array), np.maximum.reduce(array)
     if not (lowest >= 0 and 0 < largest < math.inf):  # a NaN fails lowest >= 0
         raise InputError("weights must be finite, >= 0 and not all zero")
-    floored = np.maximum(array, floor * largest)
+    floored = np.maximum(array / largest, floor)
     normalised: np.ndarray = floored / np.add.reduce(floored)
     return normalised
 
@@ -115,11 +117,13 @@ def initial_iterates(layout: HorizonLayout, x0: np.ndarray, samples: int,
     nothing in the loop writes into its iterates (every update makes new arrays), and a
     warm-started controller hands over arrays it has just made (:func:`shift_in_time`).
     ``trusted``: ``delta`` and ``w`` are such a controller's own warm start, made from the
-    iterates of a successful step of the same kernel (of the full shape and ``dtype``, and
-    finite: every kernel fails a step whose iterates are not), so they are used unchecked."""
-    if trusted and delta is not None and w is not None:
-        return delta, w
+    iterates of a successful step of the same kernel, finite (every kernel fails a step
+    whose iterates are not), so when they have the full shape and ``dtype`` they are used
+    without scanning every entry."""
     shape = (samples, layout.horizon, layout.step_size)
+    if trusted and delta is not None and w is not None and delta.shape == shape and \
+            w.shape == shape and delta.dtype == dtype and w.dtype == dtype:
+        return delta, w
     cold: tuple[np.ndarray, np.ndarray] | None = None
     if delta is None or w is None:  # a warm start (both given) builds no cold arrays
         start = x0 if np.isfinite(x0).all() else np.zeros(layout.nx)
