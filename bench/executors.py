@@ -142,7 +142,7 @@ def die_with_parent(parent_pid: int) -> None:
         raise SystemExit(0)
 
 
-def _exit_on_sigterm(signum: int, frame: FrameType | None) -> None:
+def exit_on_sigterm(signum: int, frame: FrameType | None) -> None:
     raise SystemExit(0)  # unwinds through the isolated solve's finally, which kills its child
 
 
@@ -169,7 +169,7 @@ def worker_main(connection: Any, log_path: str | None = None,
     the worker's stdout and stderr (file descriptors 1 and 2, so C libraries' prints too)
     are appended to that file instead of the terminal.
     """
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    signal.signal(signal.SIGTERM, exit_on_sigterm)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
     die_with_parent(os.getppid() if parent_pid is None else parent_pid)
     for other in inherited:

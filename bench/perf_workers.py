@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
-from c3bench.bench.executors import _exit_on_sigterm, die_with_parent
+from c3bench.bench.executors import die_with_parent, exit_on_sigterm
 from c3bench.bench.lock import close_inherited_locks
 from c3bench.bench.perf_backends import (
     BackendSpec,
@@ -167,7 +167,7 @@ def _worker(connection: Any, spec: BackendSpec, context: PerfContext, config: Co
     from c3bench.solvers.timing import single_thread_blas
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run's process handles Ctrl-C
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)  # not the CLI's handler, copied by fork
+    signal.signal(signal.SIGTERM, exit_on_sigterm)  # not the CLI's handler, copied by fork
     die_with_parent(parent_pid)
     for other in inherited:
         other.close()
