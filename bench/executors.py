@@ -146,40 +146,41 @@ def exit_on_sigterm(signum: int, frame: FrameType | None) -> None:
     raise SystemExit(0)  # unwinds through the isolated solve's finally, which kills its child
 
 
+def pickled(reply: Any, unsendable: Callable[[str], Any]) -> bytes:
+    """``reply`` pickled for a pipe, or, when it cannot be pickled, ``unsendable(why)``."""
+    try:
+        return bytes(ForkingPickler.dumps(reply))
+    except Exception as error:  # noqa: BLE001 - e.g. an unpicklable value
+        return bytes(ForkingPickler.dumps(unsendable(f"{type(error).__name__}: {error}")))
+
+
 def _reply(key: Any, fn: Callable[..., Any], args: tuple[Any, ...]) -> bytes:
     """The pickled ``(key, ok, value)`` answer of one task (``ok`` false: a message)."""
     try:
         reply: tuple[Any, bool, Any] = (key, True, fn(*args))
     except Exception as error:  # noqa: BLE001 - the task raised: reported, never fatal
         reply = (key, False, f"the task raised {type(error).__name__}: {error}")
-    try:
-        return bytes(ForkingPickler.dumps(reply))
-    except Exception as error:  # noqa: BLE001 - e.g. an unpicklable value
-        return bytes(ForkingPickler.dumps(
-            (key, False, f"the task's value cannot be sent back ({type(error).__name__}: "
-                         f"{error})")))
+    return pickled(reply, lambda why: (key, False, f"the task's value cannot be sent back "
+                                                   f"({why})"))
 
 
-def worker_main(connection: Any, log_path: str | None = None,
-                inherited: Sequence[Any] = (), parent_pid: int | None = None) -> None:
-    """Loop of a pool worker: receive ``(key, fn, args)``, send ``(key, ok, value)``.
-
-    ``inherited`` are the parent's ends of every worker's pipe, copied by the fork: they are
-    closed here so that the worker sees end-of-file when the parent dies. With ``log_path``
-    the worker's stdout and stderr (file descriptors 1 and 2, so C libraries' prints too)
-    are appended to that file instead of the terminal.
-    """
+def become_worker(parent_pid: int, inherited: Sequence[Any] = ()) -> None:
+    """Set up a forked worker process: SIGTERM exits (:func:`exit_on_sigterm`, not a handler
+    copied from the parent), Ctrl-C is left to the parent, the worker dies with
+    ``parent_pid`` (:func:`die_with_parent`), and the parent's pipe ends copied by the fork
+    (``inherited``: closed so that the worker sees end-of-file when the parent dies) and its
+    results-directory locks are closed."""
     signal.signal(signal.SIGTERM, exit_on_sigterm)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
-    die_with_parent(os.getppid() if parent_pid is None else parent_pid)
+    die_with_parent(parent_pid)
     for other in inherited:
         other.close()
     close_inherited_locks()
-    if log_path:
-        descriptor = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-        os.dup2(descriptor, 1)
-        os.dup2(descriptor, 2)
-        os.close(descriptor)
+
+
+def serve(connection: Any, answer: Callable[[Any], bytes]) -> None:
+    """Send ``answer(message)`` for each message received, until ``None``, end-of-file or a
+    broken pipe."""
     while True:
         try:
             message = connection.recv()
@@ -188,9 +189,27 @@ def worker_main(connection: Any, log_path: str | None = None,
         if message is None:
             return
         try:
-            connection.send_bytes(_reply(*message))
+            connection.send_bytes(answer(message))
         except OSError:
             return
+
+
+def worker_main(connection: Any, log_path: str | None = None,
+                inherited: Sequence[Any] = (), parent_pid: int | None = None) -> None:
+    """Loop of a pool worker: receive ``(key, fn, args)``, send ``(key, ok, value)``.
+
+    ``inherited`` are the parent's ends of every worker's pipe, copied by the fork
+    (:func:`become_worker`). With ``log_path`` the worker's stdout and stderr (file
+    descriptors 1 and 2, so C libraries' prints too) are appended to that file instead of the
+    terminal.
+    """
+    become_worker(os.getppid() if parent_pid is None else parent_pid, inherited)
+    if log_path:
+        descriptor = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+        os.dup2(descriptor, 1)
+        os.dup2(descriptor, 2)
+        os.close(descriptor)
+    serve(connection, lambda message: _reply(*message))
 
 
 # --- the local pool ---------------------------------------------------------------------------

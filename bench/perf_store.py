@@ -161,6 +161,11 @@ def old_cache_states(frame: pd.DataFrame) -> pd.Series:
                      index=frame.index, dtype=object)
 
 
+_OLD_LAYOUT_VALUES: dict[str, object] = {"weighted": False, "process": ProcessMode.SHARED.value}
+"""What a column of :data:`PERF_V2_COLUMNS` holds in a file of a layout before it (NaN for
+the others; ``cache`` is filled by :func:`old_cache_states`)."""
+
+
 def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
     """The rows of a stored perf table in the current layout: a table of layouts 1 to 5 gets
     the columns of :data:`PERF_V2_COLUMNS` it lacks (NaN, ``weighted`` ``False``, ``cache`` by
@@ -178,8 +183,7 @@ def upgrade_perf_frame(frame: pd.DataFrame, source: Path | str) -> pd.DataFrame:
             f"{PERF_SCHEMA_VERSION}; delete or move {results_folder(Path(source))}")
     for name in PERF_V2_COLUMNS:
         if name not in frame.columns:
-            frame[name] = False if name == "weighted" else ProcessMode.SHARED.value \
-                if name == "process" else math.nan
+            frame[name] = _OLD_LAYOUT_VALUES.get(name, math.nan)
     if "cache" in frame.columns and frame["cache"].isna().any():
         frame["cache"] = frame["cache"].astype(object).where(frame["cache"].notna(),
                                                             old_cache_states(frame))

@@ -31,15 +31,12 @@ import contextlib
 import gc
 import multiprocessing
 import os
-import signal
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
-from c3bench.bench.executors import die_with_parent, exit_on_sigterm
-from c3bench.bench.lock import close_inherited_locks
+from c3bench.bench.executors import become_worker, pickled, serve
 from c3bench.bench.perf_backends import (
     BackendSpec,
     BackendUnavailable,
@@ -166,12 +163,7 @@ def _worker(connection: Any, spec: BackendSpec, context: PerfContext, config: Co
     and ``None`` (stop)."""
     from c3bench.solvers.timing import single_thread_blas
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run's process handles Ctrl-C
-    signal.signal(signal.SIGTERM, exit_on_sigterm)  # not the CLI's handler, copied by fork
-    die_with_parent(parent_pid)
-    for other in inherited:
-        other.close()
-    close_inherited_locks()
+    become_worker(parent_pid, inherited)
     try:
         prepared = _prepare(spec, context, config)
     except BackendUnavailable as error:
@@ -180,14 +172,7 @@ def _worker(connection: Any, spec: BackendSpec, context: PerfContext, config: Co
     connection.send(("ready", _traits(prepared)))
     gc.collect()
     with single_thread_blas():
-        while True:
-            try:
-                message = connection.recv()
-            except (EOFError, OSError):
-                return
-            if message is None:
-                return
-            connection.send_bytes(_answer(prepared, context, spec, message))
+        serve(connection, lambda message: _answer(prepared, context, spec, message))
 
 
 def _answer(prepared: PreparedBackend, context: PerfContext, spec: BackendSpec,
@@ -205,12 +190,8 @@ def _answer(prepared: PreparedBackend, context: PerfContext, spec: BackendSpec,
         reply = ("failed", str(failure), failure.records, failure.unavailable)
     except Exception as error:  # noqa: BLE001 (its compile_seconds raised: its failure)
         reply = ("failed", f"{spec.failure}: {type(error).__name__}: {error}", [], False)
-    try:
-        return bytes(ForkingPickler.dumps(reply))
-    except Exception as error:  # noqa: BLE001 (what it returned cannot be pickled)
-        return bytes(ForkingPickler.dumps(
-            ("failed", f"{spec.failure}: its result cannot be sent back "
-                       f"({type(error).__name__}: {error})", [], False)))
+    return pickled(reply, lambda why: ("failed", f"{spec.failure}: its result cannot be "
+                                                 f"sent back ({why})", [], False))
 
 
 class WorkerBackend:
@@ -251,24 +232,20 @@ class WorkerBackend:
     def run_block(self, first: int, count: int) -> list[StepRecord]:
         """Timed steps ``first .. first + count - 1`` in the worker (:class:`BackendFailure`,
         :class:`WorkerLost`)."""
-        try:
-            self._connection.send(("block", first, count))
-        except OSError as error:
-            raise WorkerLost(f"its worker process cannot be reached ({error})") from error
-        records: list[StepRecord] = self._reply()
+        records: list[StepRecord] = self._request(("block", first, count))
         return records
 
     def compile_seconds(self) -> float:
         """JIT seconds in the worker (:class:`BackendFailure`, :class:`WorkerLost`)."""
+        return float(self._request(("compile",)))
+
+    def _request(self, message: tuple[Any, ...]) -> Any:
+        """Send ``message``; the value of the ``("ok", value)`` reply
+        (:class:`BackendFailure` for a ``("failed", ...)`` one, :class:`WorkerLost`)."""
         try:
-            self._connection.send(("compile",))
+            self._connection.send(message)
         except OSError as error:
             raise WorkerLost(f"its worker process cannot be reached ({error})") from error
-        return float(self._reply())
-
-    def _reply(self) -> Any:
-        """The value of an ``("ok", value)`` reply; :class:`BackendFailure` for a
-        ``("failed", ...)`` one."""
         reply = self._receive()
         if reply[0] == "failed":
             raise BackendFailure(reply[1], reply[2], reply[3])

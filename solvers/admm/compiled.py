@@ -310,13 +310,14 @@ class CompiledC3PlusKernel:
         assert self._planned is not None and self._plan_stacked is not None
         f, a = self._planned, self._arrays
         jacobi = bool(self.riccati.jacobi)
-        sources = (a, self._plan_stacked, pattern, f, self._structure_key, planned, jacobi)
         known = self._plan_args
         if known is not None:  # element by element, written out: this runs every step
             was = known[0]
-            if was[0] is a and was[1] is sources[1] and was[2] is pattern and was[3] is f \
-                    and was[4] is sources[4] and was[5] == planned and was[6] is jacobi:
+            if was[0] is a and was[1] is self._plan_stacked and was[2] is pattern and \
+                    was[3] is f and was[4] is self._structure_key and was[5] == planned and \
+                    was[6] is jacobi:
                 return known[1], known[2]
+        sources = (a, self._plan_stacked, pattern, f, self._structure_key, planned, jacobi)
         bases, two_rho_eta, consts = self._plan_stacked
         head = (a["A"], a["Bv"], a["d"], a["MtM"], bases, two_rho_eta, self._PT, self._ridge,
                 jacobi, self._zero, self._one, pattern.column_start,
